@@ -1,0 +1,213 @@
+"""Calibrated pinhole camera with OpenCV lens distortion (SPEC.md: camera file).
+
+X_cam = R_wc · X_world + T_wc; pixels in OpenCV convention ((0, 0) is the centre of the top-left pixel).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from toptag.inputs import InputError, describe_validation_error, read_json
+
+ROTATION_TOLERANCE = 1e-6
+
+
+class CameraFile(BaseModel):
+    """The camera JSON as it is stored and sent (the RSU calibration)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str = Field(min_length=1)
+    width: int
+    height: int
+    K: list[list[float]]
+    dist: list[float] = Field(default_factory=lambda: [0.0] * 5)
+    R_wc: list[list[float]]
+    T_wc: list[float]
+
+    @field_validator("width", "height")
+    @classmethod
+    def _positive(cls, v: int) -> int:
+        if v <= 0:
+            raise ValueError("must be positive")
+        return v
+
+    @field_validator("K", "R_wc")
+    @classmethod
+    def _three_by_three(cls, v: list[list[float]]) -> list[list[float]]:
+        if len(v) != 3 or any(len(row) != 3 for row in v):
+            raise ValueError("must be a 3x3 matrix")
+        if not np.all(np.isfinite(np.asarray(v, dtype=float))):
+            raise ValueError("must be finite")
+        return v
+
+    @field_validator("T_wc")
+    @classmethod
+    def _three_vector(cls, v: list[float]) -> list[float]:
+        if len(v) != 3 or not np.all(np.isfinite(v)):
+            raise ValueError("must be 3 finite numbers")
+        return v
+
+    @field_validator("dist")
+    @classmethod
+    def _distortion(cls, v: list[float]) -> list[float]:
+        if len(v) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(v)):
+            raise ValueError("must hold 4, 5, 8, 12 or 14 finite OpenCV distortion coefficients")
+        return v
+
+    @model_validator(mode="after")
+    def _geometry(self) -> "CameraFile":
+        K = np.asarray(self.K, dtype=float)
+        if abs(np.linalg.det(K)) < 1e-9 or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError("K: singular or non-positive focal length")
+        if np.any(np.abs(K[2] - [0.0, 0.0, 1.0]) > 1e-9):
+            raise ValueError("K: last row must be [0, 0, 1]")
+        R = np.asarray(self.R_wc, dtype=float)
+        if np.max(np.abs(R.T @ R - np.eye(3))) > ROTATION_TOLERANCE or abs(np.linalg.det(R) - 1.0) > ROTATION_TOLERANCE:
+            raise ValueError("R_wc: not a rotation (R^T R != I or det != 1)")
+        return self
+
+
+class Camera:
+    """One calibrated camera. All methods take and return numpy arrays; no I/O but `load`."""
+
+    def __init__(self, id: str, width: int, height: int, K, dist, R_wc, T_wc):
+        self.id = id
+        self.width = int(width)
+        self.height = int(height)
+        self.K = np.asarray(K, dtype=float).reshape(3, 3)
+        d = np.zeros(5) if dist is None else np.asarray(dist, dtype=float).ravel()
+        self.dist = d
+        self.R = np.asarray(R_wc, dtype=float).reshape(3, 3)
+        self.t = np.asarray(T_wc, dtype=float).reshape(3)
+        self.K_inv = np.linalg.inv(self.K)
+        self.has_distortion = bool(np.any(d != 0.0))
+
+    # ---- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_model(cls, m: CameraFile) -> "Camera":
+        return cls(m.id, m.width, m.height, m.K, m.dist, m.R_wc, m.T_wc)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "camera") -> "Camera":
+        try:
+            return cls.from_model(CameraFile.model_validate(data))
+        except ValidationError as e:
+            raise InputError(f"{source}: {describe_validation_error(e)}") from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Camera":
+        return cls.from_dict(read_json(path, "camera file"), source=f"camera file {path}")
+
+    @classmethod
+    def looking_at(cls, id: str, position, target_yaw: float, pitch_down: float, hfov: float,
+                   width: int, height: int, dist=None) -> "Camera":
+        """A camera at world `position`, heading `target_yaw` (rad from +x, CCW), tilted `pitch_down`
+        below the horizon, with horizontal field of view `hfov` (rad) and square pixels."""
+        f = (width / 2.0) / np.tan(hfov / 2.0)
+        K = [[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
+        fwd = np.array([np.cos(target_yaw) * np.cos(pitch_down), np.sin(target_yaw) * np.cos(pitch_down),
+                        -np.sin(pitch_down)])
+        right = np.array([np.sin(target_yaw), -np.cos(target_yaw), 0.0])
+        down = np.cross(fwd, right)
+        R = np.vstack([right, down, fwd])
+        t = -R @ np.asarray(position, dtype=float)
+        return cls(id, width, height, K, dist, R, t)
+
+    def to_model(self) -> CameraFile:
+        return CameraFile(id=self.id, width=self.width, height=self.height, K=self.K.tolist(),
+                          dist=self.dist.tolist(), R_wc=self.R.tolist(), T_wc=self.t.tolist())
+
+    def with_extrinsics(self, R_wc, T_wc) -> "Camera":
+        return Camera(self.id, self.width, self.height, self.K, self.dist, R_wc, T_wc)
+
+    def scaled(self, width: int, height: int, id: str | None = None) -> "Camera":
+        """The same optics and pose at another resolution (same field of view)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, 0] *= sx
+        K[1, 1] *= sy
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return Camera(id or self.id, width, height, K, self.dist, self.R, self.t)
+
+    # ---- geometry -----------------------------------------------------------------------------
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates."""
+        return -self.R.T @ self.t
+
+    def to_camera(self, points_world) -> np.ndarray:
+        P = np.asarray(points_world, dtype=float).reshape(-1, 3)
+        return P @ self.R.T + self.t
+
+    def project(self, points_world, distort: bool = True) -> np.ndarray:
+        """World points (N,3) to pixels (N,2); with distortion unless `distort=False` (ideal pinhole)."""
+        Pc = self.to_camera(points_world)
+        xn = Pc[:, :2] / Pc[:, 2:3]
+        if distort and self.has_distortion:
+            xn = self.distort_normalized(xn)
+        return xn @ self.K[:2, :2].T + self.K[:2, 2]
+
+    def distort_normalized(self, xn: np.ndarray) -> np.ndarray:
+        k = np.zeros(5)
+        k[: min(5, self.dist.size)] = self.dist[:5]
+        k1, k2, p1, p2, k3 = k
+        x, y = xn[:, 0], xn[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        if self.dist.size >= 8:
+            k4, k5, k6 = self.dist[5:8]
+            radial = radial / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3)
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.column_stack([xd, yd])
+
+    def normalized(self, pixels, distorted: bool = True) -> np.ndarray:
+        """Pixels (N,2) to ideal normalized image coordinates (N,2), removing lens distortion."""
+        uv = np.asarray(pixels, dtype=float).reshape(-1, 2)
+        xd = (uv - self.K[:2, 2]) @ np.linalg.inv(self.K[:2, :2]).T
+        if not (distorted and self.has_distortion):
+            return xd
+        x = xd.copy()
+        # Fixed-point start, then Newton with a numeric Jacobian: exact to ~1e-12 for real lenses.
+        for _ in range(8):
+            x = x + (xd - self.distort_normalized(x))
+        eps = 1e-7
+        for _ in range(4):
+            f0 = self.distort_normalized(x) - xd
+            jx = (self.distort_normalized(x + [eps, 0.0]) - self.distort_normalized(x)) / eps
+            jy = (self.distort_normalized(x + [0.0, eps]) - self.distort_normalized(x)) / eps
+            det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+            dx = (jy[:, 1] * f0[:, 0] - jy[:, 0] * f0[:, 1]) / det
+            dy = (-jx[:, 1] * f0[:, 0] + jx[:, 0] * f0[:, 1]) / det
+            x = x - np.column_stack([dx, dy])
+        return x
+
+    def undistort(self, pixels) -> np.ndarray:
+        """Observed pixels to the pixels an ideal (distortion-free) camera with the same K would see."""
+        return self.normalized(pixels) @ self.K[:2, :2].T + self.K[:2, 2]
+
+    def rays(self, pixels, distorted: bool = True) -> np.ndarray:
+        """World-frame unit ray directions through pixels (N,3)."""
+        xn = self.normalized(pixels, distorted)
+        d_cam = np.column_stack([xn, np.ones(len(xn))])
+        d = d_cam @ self.R  # R^T applied row-wise
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def backproject_to_plane(self, pixels, z: float, distorted: bool = True) -> np.ndarray:
+        """Intersect the rays through pixels with the world plane Z = z (N,3); NaN where parallel/behind."""
+        d = self.rays(pixels, distorted)
+        c = self.center
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (z - c[2]) / d[:, 2]
+        s = np.where(s > 0, s, np.nan)
+        return c + s[:, None] * d
+
+    def in_image(self, pixels, margin: float = 0.0) -> np.ndarray:
+        uv = np.asarray(pixels, dtype=float).reshape(-1, 2)
+        return ((uv[:, 0] >= -0.5 + margin) & (uv[:, 0] <= self.width - 0.5 - margin)
+                & (uv[:, 1] >= -0.5 + margin) & (uv[:, 1] <= self.height - 0.5 - margin))
+

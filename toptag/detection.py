@@ -1,0 +1,122 @@
+"""AprilTag detection restricted to announced code bags.
+
+pupil-apriltags reports corners with (0, 0) at the top-left *corner* of the first pixel; toptag uses
+OpenCV's convention ((0, 0) at its centre) and the camera's ideal (undistorted) pixels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from toptag.camera import Camera
+from toptag.vehicle import Vehicle
+
+PUPIL_TO_OPENCV = -0.5
+
+
+class DetectorSettings(BaseModel):
+    """pupil-apriltags knobs. Defaults find a 1.6 m tag at 20+ m from an 8 m, 40° RSU at 960×720."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    quad_decimate: float = Field(default=1.0, ge=1.0)
+    quad_sigma: float = Field(default=0.0, ge=0.0)
+    refine_edges: bool = True
+    decode_sharpening: float = Field(default=0.25, ge=0.0)
+    nthreads: int = Field(default=1, ge=1)
+    max_hamming: int = Field(default=0, ge=0, le=3)
+
+
+@dataclass
+class TagObservation:
+    """One detected tag of a known vehicle in one camera."""
+
+    tag_id: int
+    corners: np.ndarray  # (4,2) ideal pixels (OpenCV convention, distortion removed), detector order
+    camera: Camera
+    raw_corners: np.ndarray = field(repr=False, default=None)  # (4,2) observed pixels, OpenCV convention
+    hamming: int = 0
+    decision_margin: float = 0.0
+
+
+@dataclass
+class RawDetection:
+    """A tag as the detector saw it in image pixels (OpenCV convention), before bag filtering."""
+
+    family: str
+    tag_id: int
+    corners: np.ndarray
+    hamming: int
+    decision_margin: float
+
+
+class TagDetector:
+    """One pupil-apriltags detector per family set, kept alive for the life of the process.
+
+    pupil-apriltags' `Detector.__del__` can crash at interpreter exit, so callers should keep the
+    instance for the whole run (CLIs leave through `os._exit` after flushing)."""
+
+    _keepalive: list = []
+
+    def __init__(self, families=("tag36h11",), settings: DetectorSettings | None = None):
+        from pupil_apriltags import Detector  # heavy import; only where detection happens
+
+        self.settings = settings or DetectorSettings()
+        self.families = tuple(sorted(set(families)))
+        s = self.settings
+        self._detector = Detector(families=" ".join(self.families), nthreads=s.nthreads,
+                                  quad_decimate=s.quad_decimate, quad_sigma=s.quad_sigma,
+                                  refine_edges=int(s.refine_edges), decode_sharpening=s.decode_sharpening)
+        TagDetector._keepalive.append(self._detector)
+
+    def detect_raw(self, gray: np.ndarray, offset=(0, 0)) -> list[RawDetection]:
+        """Every tag of the detector's families in `gray` (uint8, 2-D); `offset` is the (x, y) of
+        gray's first pixel in the full frame when gray is a crop."""
+        if gray.dtype != np.uint8 or gray.ndim != 2:
+            raise ValueError("detector input must be a 2-D uint8 image")
+        img = np.ascontiguousarray(gray)
+        shift = np.array([offset[0] + PUPIL_TO_OPENCV, offset[1] + PUPIL_TO_OPENCV])
+        out = []
+        for d in self._detector.detect(img):
+            if d.hamming > self.settings.max_hamming:
+                continue
+            fam = d.tag_family.decode() if isinstance(d.tag_family, bytes) else str(d.tag_family)
+            out.append(RawDetection(fam, int(d.tag_id), np.asarray(d.corners, dtype=float) + shift,
+                                    int(d.hamming), float(d.decision_margin)))
+        return out
+
+
+def assign_to_vehicles(raw: list[RawDetection], camera: Camera,
+                       vehicles: list[Vehicle]) -> dict[str, list[TagObservation]]:
+    """Keep only detections whose family and id belong to a vehicle's code bag, per vehicle.
+
+    A (family, id) claimed by two vehicles is ambiguous and goes to neither."""
+    owner: dict[tuple[str, int], str | None] = {}
+    for v in vehicles:
+        for tid in v.tag_ids:
+            key = (v.family, tid)
+            owner[key] = None if key in owner else v.id
+    result: dict[str, list[TagObservation]] = {v.id: [] for v in vehicles}
+    seen: set[tuple[str, int]] = set()
+    for d in raw:
+        key = (d.family, d.tag_id)
+        vid = owner.get(key)
+        if vid is None:
+            continue
+        if key in seen:
+            # The same tag twice in one frame is impossible for one vehicle: a look-alike is in view.
+            result[vid] = [o for o in result[vid] if o.tag_id != d.tag_id]
+            owner[key] = None
+            continue
+        seen.add(key)
+        result[vid].append(TagObservation(d.tag_id, camera.undistort(d.corners), camera, d.corners,
+                                          d.hamming, d.decision_margin))
+    return result
+
+
+def detect_vehicle_tags(detector: TagDetector, gray: np.ndarray, camera: Camera,
+                        vehicles: list[Vehicle]) -> dict[str, list[TagObservation]]:
+    """Full-frame detection of the announced vehicles' tags in one camera image."""
+    return assign_to_vehicles(detector.detect_raw(gray), camera, vehicles)

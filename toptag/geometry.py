@@ -1,0 +1,63 @@
+"""Small rigid-body helpers shared by the solvers, the simulator and the filter."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def wrap_angle(a):
+    """Wrap to (-pi, pi]."""
+    w = np.mod(np.asarray(a, dtype=float) + np.pi, 2 * np.pi) - np.pi
+    w = np.where(w == -np.pi, np.pi, w)
+    return float(w) if np.ndim(w) == 0 else w
+
+
+def rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rodrigues(rvec) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis * angle)."""
+    r = np.asarray(rvec, dtype=float).reshape(3)
+    th = np.linalg.norm(r)
+    if th < 1e-12:
+        k = np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])
+        return np.eye(3) + k
+    k = r / th
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * (kx @ kx)
+
+
+def rotation_vector(R) -> np.ndarray:
+    """Rotation vector of a rotation matrix (inverse of `rodrigues`), robust near pi."""
+    R = np.asarray(R, dtype=float)
+    cos_th = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
+    th = np.arccos(cos_th)
+    if th < 1e-8:
+        return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
+    if np.pi - th < 1e-6:
+        B = (R + np.eye(3)) / 2
+        axis = np.sqrt(np.clip(np.diag(B), 0, None))
+        i = int(np.argmax(axis))
+        axis = B[i] / axis[i]
+        return th * axis / np.linalg.norm(axis)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return th * w / (2 * np.sin(th))
+
+
+def nearest_rotation(M) -> np.ndarray:
+    """The rotation closest to M in the Frobenius sense (SVD projection)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def yaw_of(R) -> float:
+    """Heading of a body whose x axis is R[:, 0], projected on the ground plane."""
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def vehicle_to_world(points_top, x: float, y: float, yaw: float, z: float) -> np.ndarray:
+    """Points in the vehicle-top frame (N,3) to world, for a vehicle at (x, y, yaw) with roof height z."""
+    P = np.asarray(points_top, dtype=float).reshape(-1, 3)
+    return P @ rot_z(yaw).T + np.array([x, y, z])
