@@ -69,6 +69,9 @@ class TagDetector:
         self._detector = Detector(families=" ".join(self.families), nthreads=s.nthreads,
                                   quad_decimate=s.quad_decimate, quad_sigma=s.quad_sigma,
                                   refine_edges=int(s.refine_edges), decode_sharpening=s.decode_sharpening)
+        # pupil-apriltags 1.0.4 passes decode_sharpening through int(), turning 0.25 into 0: set it as the
+        # C library expects (a double).
+        self._detector.tag_detector_ptr.contents.decode_sharpening = float(s.decode_sharpening)
         TagDetector._keepalive.append(self._detector)
 
     def detect_raw(self, gray: np.ndarray, offset=(0, 0)) -> list[RawDetection]:
