@@ -1,0 +1,348 @@
+"""Pose solvers against real RSU geometry (sim.scene) and synthetic corner projections; no mocks."""
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from sim.scene import bundled_vehicle, rsu_camera
+from toptag.detection import TagObservation
+from toptag.geometry import vehicle_to_world, wrap_angle
+from toptag.solvers import Limits, PoseSolution, canonical_method, position_crlb, solve
+
+SW = rsu_camera("sw", 960, 720)
+SE = rsu_camera("se", 960, 720)
+RSU_SW_XY = SW.center[:2]
+CONFIGS = [("bas", "paper"), ("hopt", "paper"), ("sopt", "paper"), ("sopt", "principled")]
+NO_LIMITS = Limits(max_position_sigma_m=math.inf)
+
+
+def observe(vehicle, pose, cameras=(SW,), noise=0.0, rng=None, dz=0.0):
+    """Each tag fully inside an image, projected exactly (ideal pixels) plus optional Gaussian noise."""
+    x, y, yaw = pose
+    out = []
+    for cam in cameras:
+        for tid in vehicle.tag_ids:
+            uv = cam.project(vehicle_to_world(vehicle.tag_corners(tid), x, y, yaw, vehicle.height + dz),
+                             distort=False)
+            if not cam.in_image(uv).all():
+                continue
+            if noise:
+                uv = uv + rng.normal(0.0, noise, uv.shape)
+            out.append(TagObservation(tid, uv, cam))
+    return out
+
+
+def at_distance(d: float, bearing: float = math.pi / 4, yaw: float = 0.5):
+    """A pose d metres (horizontal) from the south-west RSU, `bearing` from world +x."""
+    return (RSU_SW_XY[0] + d * math.cos(bearing), RSU_SW_XY[1] + d * math.sin(bearing), yaw)
+
+
+def pose_error(sol: PoseSolution, pose) -> np.ndarray:
+    return np.array([sol.x - pose[0], sol.y - pose[1], wrap_angle(sol.yaw - pose[2])])
+
+
+# ---- exact data --------------------------------------------------------------------------------
+EXACT_POSES = [(-3.0, -4.0, 0.3), (0.0, -3.0, math.pi - 1e-3), (-4.0, 0.0, -math.pi + 1e-3),
+               (-2.0, -2.0, math.pi), (1.0, 1.0, math.pi / 2), at_distance(16.0, yaw=-2.0)]
+
+
+@pytest.mark.parametrize("name", ["bus_single", "bus_double", "bus_triple", "bus_long"])
+@pytest.mark.parametrize("pose", EXACT_POSES)
+def test_exact_projections_give_the_exact_pose(name, pose):
+    vehicle = bundled_vehicle(name)
+    obs = observe(vehicle, pose)
+    assert obs, "pose chosen so that at least one tag is in view"
+    for method, weighting in CONFIGS:
+        sol = solve(vehicle, obs, method, weighting=weighting, limits=NO_LIMITS)
+        assert sol.ok, (method, weighting, sol.error)
+        assert np.max(np.abs(pose_error(sol, pose))) < 1e-9, (method, weighting)
+        assert abs(sol.z - vehicle.height) < 1e-9
+        assert -math.pi < sol.yaw <= math.pi
+        assert sol.rms_px < 1e-6
+        assert sol.tags == sorted({o.tag_id for o in obs}) and not sol.dropped_tags
+        assert sol.cameras == ["rsu-sw"]
+
+
+def test_tag_count_is_exercised():
+    """The exact-pose cases above really cover one, two and three tags in view."""
+    counts = {len(observe(bundled_vehicle(n), p)) for n in ("bus_single", "bus_double", "bus_triple")
+              for p in EXACT_POSES}
+    assert {1, 2, 3} <= counts
+
+
+# ---- noise: covariance honesty ------------------------------------------------------------------
+def test_errors_lie_within_the_covariance():
+    """Random poses 6–18 m away, 0.3 px noise, roof ±10 cm: Mahalanobis distances follow chi-square(3)."""
+    rng = np.random.default_rng(11)
+    vehicle = bundled_vehicle("bus_double")
+    limit = stats.chi2.ppf(0.999, 3)
+    d2 = {cfg: [] for cfg in CONFIGS}
+    for _ in range(60):
+        pose = at_distance(rng.uniform(6, 18), rng.uniform(0.25, 1.3), rng.uniform(-math.pi, math.pi))
+        obs = observe(vehicle, pose, noise=0.3, rng=rng, dz=rng.uniform(-0.1, 0.1))
+        if not obs:
+            continue
+        for cfg in CONFIGS:
+            sol = solve(vehicle, obs, cfg[0], weighting=cfg[1], sigma_px=0.3)
+            if sol.ok:
+                e = pose_error(sol, pose)
+                d2[cfg].append(e @ np.linalg.solve(sol.covariance, e))
+    for cfg, values in d2.items():
+        values = np.array(values)
+        min_ok = 25 if cfg[0] == "bas" else 50  # Bas. honestly refuses far single-camera poses
+        assert len(values) >= min_ok, cfg
+        assert np.mean(values > limit) <= 0.04, cfg
+        assert 2.0 < values.mean() < 4.5, cfg  # chi-square(3) has mean 3
+
+
+@pytest.mark.parametrize("distance, configs", [(16.0, CONFIGS[1:]), (10.0, CONFIGS[:1])])
+def test_covariance_matches_monte_carlo(distance, configs):
+    """300 trials, 0.3 px noise, roof height uniform ±10 cm (sigma_h = 0.2/sqrt(12)): the predicted
+    covariance (mean over trials) agrees with the empirical one within 30 %."""
+    rng = np.random.default_rng(5)
+    vehicle = bundled_vehicle("bus_double")
+    pose = at_distance(distance)
+    errors = {cfg: [] for cfg in configs}
+    predicted = {cfg: [] for cfg in configs}
+    for _ in range(300):
+        obs = observe(vehicle, pose, noise=0.3, rng=rng, dz=rng.uniform(-0.1, 0.1))
+        for cfg in configs:
+            sol = solve(vehicle, obs, cfg[0], weighting=cfg[1], sigma_px=0.3, robust=False, limits=NO_LIMITS)
+            assert sol.ok, sol.error
+            errors[cfg].append(pose_error(sol, pose))
+            predicted[cfg].append(sol.covariance)
+    for cfg in configs:
+        E = np.array(errors[cfg])
+        empirical = E.T @ E / len(E)
+        C = np.mean(predicted[cfg], axis=0)
+        pos_ratio = (empirical[0, 0] + empirical[1, 1]) / (C[0, 0] + C[1, 1])
+        yaw_ratio = empirical[2, 2] / C[2, 2]
+        assert 0.7 < pos_ratio < 1.3, (cfg, pos_ratio)
+        assert 0.7 < yaw_ratio < 1.3, (cfg, yaw_ratio)
+
+
+def test_estimated_sigma_covariance_matches_monte_carlo():
+    """With sigma_px unknown, the noise estimated from the residuals gives the same honest spread."""
+    rng = np.random.default_rng(6)
+    vehicle = bundled_vehicle("bus_triple")
+    pose = at_distance(12.0, yaw=2.0)
+    E, C, sig = [], [], []
+    for _ in range(200):
+        obs = observe(vehicle, pose, noise=0.3, rng=rng, dz=rng.uniform(-0.1, 0.1))
+        sol = solve(vehicle, obs, "sopt", weighting="principled", robust=False)
+        assert sol.ok, sol.error
+        E.append(pose_error(sol, pose)[:2])
+        C.append(sol.covariance[:2, :2])
+        sig.append(sol.sigma_px)
+    E = np.array(E)
+    ratio = np.mean(np.sum(E ** 2, axis=1)) / np.trace(np.mean(C, axis=0))
+    assert 0.7 < ratio < 1.3, ratio
+    assert 0.25 < np.median(sig) < 0.35
+
+
+def test_sopt_reaches_the_cramer_rao_bound():
+    """S.Opt. (paper weighting is in effect the free 6-DOF fit) against the 6-DOF bound; H.Opt. with a
+    true roof height against the (x, y, yaw) bound with the height known."""
+    rng = np.random.default_rng(8)
+    vehicle = bundled_vehicle("bus_double")
+    pose = at_distance(16.0)
+    bound6 = position_crlb(vehicle, [(SW, vehicle.tag_ids)], pose, 0.3)
+    bound_h = position_crlb(vehicle, [(SW, vehicle.tag_ids)], pose, 0.3, sigma_h=1e-6)
+    e_s, e_h = [], []
+    for _ in range(200):
+        obs = observe(vehicle, pose, noise=0.3, rng=rng)
+        e_s.append(pose_error(solve(vehicle, obs, "sopt", sigma_px=0.3, robust=False), pose))
+        e_h.append(pose_error(solve(vehicle, obs, "hopt", sigma_px=0.3, sigma_h=0.0, robust=False), pose))
+    for errs, bound in ((e_s, bound6), (e_h, bound_h)):
+        errs = np.array(errs)
+        rms = math.sqrt(np.mean(errs[:, 0] ** 2 + errs[:, 1] ** 2))
+        assert 0.8 < rms / bound.position_rms < 1.2
+        assert 0.8 < math.sqrt(np.mean(errs[:, 2] ** 2)) / bound.yaw_rms < 1.2
+
+
+def test_crlb_properties():
+    vehicle = bundled_vehicle("bus_double")
+    pose = (0.5, -1.0, 0.4)
+    one = position_crlb(vehicle, [(SW, vehicle.tag_ids)], pose, 0.3)
+    prior = position_crlb(vehicle, [(SW, vehicle.tag_ids)], pose, 0.3, sigma_h=0.058)
+    two = position_crlb(vehicle, [(SW, vehicle.tag_ids), (SE, vehicle.tag_ids)], pose, 0.3)
+    half = position_crlb(vehicle, [(SW, vehicle.tag_ids)], pose, 0.15)
+    assert prior.position_rms < one.position_rms
+    assert two.position_rms < one.position_rms / 3
+    assert half.position_rms == pytest.approx(one.position_rms / 2, rel=1e-9)
+    assert one.covariance.shape == (3, 3) and one.n_corners == 8
+    # H.Opt.'s covariance with the roof height known is that bound.
+    sol = solve(vehicle, observe(vehicle, pose), "hopt", sigma_px=0.3, sigma_h=0.0)
+    known_h = position_crlb(vehicle, [(SW, vehicle.tag_ids)], pose, 0.3, sigma_h=1e-9)
+    np.testing.assert_allclose(sol.covariance, known_h.covariance, rtol=1e-5, atol=1e-14)
+    assert position_crlb(vehicle, [], pose, 0.3).position_rms == math.inf
+
+
+# ---- several cameras ------------------------------------------------------------------------------
+def test_two_cameras_jointly():
+    vehicle = bundled_vehicle("bus_double")
+    pose = (0.5, -1.0, 0.4)
+    both = observe(vehicle, pose, (SW, SE))
+    assert len(both) == 4
+    for method, weighting in CONFIGS:
+        sol = solve(vehicle, both, method, weighting=weighting)
+        assert sol.ok and np.max(np.abs(pose_error(sol, pose))) < 1e-9
+        assert sol.cameras == (["rsu-se"] if method == "bas" else ["rsu-se", "rsu-sw"])
+
+    rng = np.random.default_rng(3)
+    sq = {"sw": [], "se": [], "both": []}
+    for _ in range(60):
+        obs = observe(vehicle, pose, (SW, SE), noise=0.3, rng=rng, dz=rng.uniform(-0.1, 0.1))
+        for key, sub in (("sw", obs[:2]), ("se", obs[2:]), ("both", obs)):
+            sol = solve(vehicle, sub, "sopt", weighting="principled", sigma_px=0.3)
+            assert sol.ok
+            sq[key].append(np.sum(pose_error(sol, pose)[:2] ** 2))
+    rms = {k: math.sqrt(np.mean(v)) for k, v in sq.items()}
+    assert rms["both"] < 0.5 * min(rms["sw"], rms["se"])
+
+
+# ---- roof height ------------------------------------------------------------------------------------
+def test_sopt_principled_survives_a_roof_height_error():
+    rng = np.random.default_rng(4)
+    vehicle = bundled_vehicle("bus_double")
+    for d in (8.0, 12.0, 16.0):
+        pose = at_distance(d)
+        obs = observe(vehicle, pose, noise=0.3, rng=rng, dz=0.08)
+        sol = solve(vehicle, obs, "sopt", weighting="principled", sigma_px=0.3)
+        assert sol.ok
+        assert math.hypot(*pose_error(sol, pose)[:2]) < 0.05
+        hopt = solve(vehicle, observe(vehicle, pose, dz=0.08), "hopt")
+        assert math.hypot(*pose_error(hopt, pose)[:2]) > 0.1  # what the fixed plane costs
+
+
+def test_hopt_covariance_carries_the_height_uncertainty():
+    vehicle = bundled_vehicle("bus_double")
+    pose = at_distance(16.0)
+    exact = observe(vehicle, pose)
+    with_h = solve(vehicle, exact, "hopt", sigma_px=0.3, sigma_h=0.058)
+    without = solve(vehicle, exact, "hopt", sigma_px=0.3, sigma_h=0.0)
+    extra = with_h.covariance - without.covariance
+    assert np.all(np.linalg.eigvalsh(extra) > -1e-12)
+    assert with_h.position_sigma > 5 * without.position_sigma
+    # The height term alone predicts the error a known roof offset causes.
+    shifted = solve(vehicle, observe(vehicle, pose, dz=0.08), "hopt")
+    predicted = 0.08 / 0.058 * math.sqrt(np.trace(extra[:2, :2]))
+    assert math.hypot(*pose_error(shifted, pose)[:2]) == pytest.approx(predicted, rel=0.05)
+
+
+# ---- robustness --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["bus_double", "bus_triple"])
+@pytest.mark.parametrize("sigma_px", [None, 0.3])
+def test_a_tag_with_a_displaced_corner_is_dropped(name, sigma_px):
+    rng = np.random.default_rng(9)
+    vehicle = bundled_vehicle(name)
+    for d, corner in ((8.0, 0), (12.0, 1), (16.0, 2)):
+        pose = at_distance(d, yaw=0.7)
+        obs = observe(vehicle, pose, noise=0.3, rng=rng)
+        bad = obs[-1]
+        bad.corners = bad.corners.copy()
+        bad.corners[corner] += 8.0 * np.array([math.cos(d), math.sin(d)])
+        for method in ("hopt", "sopt"):
+            sol = solve(vehicle, obs, method, sigma_px=sigma_px)
+            assert sol.ok, sol.error
+            assert [t["tag"] for t in sol.dropped_tags] == [bad.tag_id]
+            assert sol.dropped_tags[0]["camera"] == "rsu-sw" and "disagree" in sol.dropped_tags[0]["reason"]
+            assert bad.tag_id not in sol.tags
+            assert math.hypot(*pose_error(sol, pose)[:2]) < 4 * sol.position_sigma + 0.01
+
+
+def test_single_tag_with_a_bad_corner_is_refused():
+    rng = np.random.default_rng(10)
+    vehicle = bundled_vehicle("bus_single")
+    for d in (8.0, 12.0, 16.0):
+        obs = observe(vehicle, at_distance(d), noise=0.3, rng=rng)
+        obs[0].corners[3] += (6.0, -5.0)
+        for method, weighting in CONFIGS:
+            for sigma_px in (None, 0.3):
+                sol = solve(vehicle, obs, method, weighting=weighting, sigma_px=sigma_px)
+                assert not sol.ok, (d, method, sigma_px)
+                assert sol.error and "\n" not in sol.error
+                assert math.isnan(sol.x) and not sol.dropped_tags
+
+
+def test_garbage_is_refused_with_an_error():
+    rng = np.random.default_rng(12)
+    vehicle = bundled_vehicle("bus_double")
+    cases = {
+        "random": [TagObservation(t, rng.uniform(0, 700, (4, 2)), SW) for t in vehicle.tag_ids],
+        "collapsed": [TagObservation(t, np.full((4, 2), 300.0) + rng.normal(0, 0.01, (4, 2)), SW)
+                      for t in vehicle.tag_ids],
+        "mirrored": [TagObservation(o.tag_id, o.corners[::-1].copy(), SW)
+                     for o in observe(vehicle, (0.0, -2.0, 0.5))],
+        "mirrored single": [TagObservation(o.tag_id, o.corners[::-1].copy(), SW)
+                            for o in observe(bundled_vehicle("bus_single"), (0.0, -2.0, 0.5))],
+    }
+    for case, obs in cases.items():
+        v = bundled_vehicle("bus_single") if case == "mirrored single" else vehicle
+        for method, weighting in CONFIGS:
+            sol = solve(v, obs, method, weighting=weighting)
+            assert not sol.ok, (case, method)
+            assert isinstance(sol.error, str) and sol.error and "\n" not in sol.error
+
+
+def test_unusable_observations_are_reported():
+    vehicle = bundled_vehicle("bus_double")
+    pose = (-3.0, -4.0, 0.3)
+    good = observe(vehicle, pose)
+    stranger = TagObservation(99, good[0].corners, SW)
+    nan = TagObservation(good[1].tag_id, np.full((4, 2), np.nan), SE)
+    sol = solve(vehicle, [*good, stranger, nan], "sopt")
+    assert sol.ok and np.max(np.abs(pose_error(sol, pose))) < 1e-9
+    reasons = {d["tag"]: d["reason"] for d in sol.dropped_tags}
+    assert "not on this vehicle" in reasons[99] and "finite" in reasons[good[1].tag_id]
+    none = solve(vehicle, [stranger], "sopt")
+    assert not none.ok and "no usable tag observations" in none.error
+    assert not solve(vehicle, [], "hopt").ok
+
+
+def test_far_single_tag_bas_is_refused_rather_than_trusted():
+    vehicle = bundled_vehicle("bus_single")
+    rng = np.random.default_rng(13)
+    sol = solve(vehicle, observe(vehicle, at_distance(20.0), noise=0.3, rng=rng), "bas", sigma_px=0.3)
+    assert not sol.ok and "position uncertainty" in sol.error
+
+
+# ---- interface --------------------------------------------------------------------------------------
+def test_solution_to_dict_is_plain_json():
+    vehicle = bundled_vehicle("bus_double")
+    sol = solve(vehicle, observe(vehicle, (-3.0, -4.0, 0.3)), "S.Opt.", weighting="principled")
+    d = json.loads(json.dumps(sol.to_dict(), allow_nan=False))
+    assert d["ok"] and d["method"] == "sopt" and len(d["covariance"]) == 3 and d["tags"] == [3, 7]
+    failed = solve(vehicle, [], "bas").to_dict()
+    json.dumps(failed, allow_nan=False)
+    assert failed["ok"] is False and failed["x"] is None and failed["error"]
+
+
+def test_arguments_are_checked():
+    assert [canonical_method(m) for m in ("Bas.", "H.Opt.", "s-opt")] == ["bas", "hopt", "sopt"]
+    vehicle = bundled_vehicle("bus_double")
+    obs = observe(vehicle, (-3.0, -4.0, 0.3))
+    with pytest.raises(ValueError):
+        solve(vehicle, obs, "pnp")
+    with pytest.raises(ValueError):
+        solve(vehicle, obs, "sopt", weighting="magic")
+    with pytest.raises(ValueError):
+        solve(vehicle, obs, "sopt", weighting="principled", sigma_h=0.0)
+
+
+def test_solvers_are_fast():
+    rng = np.random.default_rng(14)
+    vehicle = bundled_vehicle("bus_double")
+    obs = observe(vehicle, at_distance(16.0), noise=0.3, rng=rng)
+    for method, weighting in CONFIGS:
+        solve(vehicle, obs, method, weighting=weighting)
+        t0 = time.perf_counter()
+        for _ in range(20):
+            solve(vehicle, obs, method, weighting=weighting)
+        ms = (time.perf_counter() - t0) / 20 * 1e3
+        assert ms < 25.0, (method, ms)  # ~1–4 ms on an idle core; generous for a shared machine

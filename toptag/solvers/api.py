@@ -1,0 +1,134 @@
+"""`solve`: one vehicle's tag observations (any tags, any cameras) to a checked PoseSolution."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from toptag.detection import TagObservation
+from toptag.solvers.bas import fit_bas
+from toptag.solvers.common import SIGMA_H_DEFAULT, Fit, PoseSolution
+from toptag.solvers.hopt import fit_hopt, initial_pose
+from toptag.solvers.model import Corners, build_corners
+from toptag.solvers.robust import Limits, implausibility, screen_outliers
+from toptag.solvers.sopt import HEIGHT_MODELS, WEIGHTINGS, fit_sopt
+from toptag.vehicle import Vehicle
+
+METHODS = ("bas", "hopt", "sopt")
+
+
+def canonical_method(method: str) -> str:
+    """'Bas.', 'H.Opt.', 'h-opt', 'SOPT' ... to 'bas' | 'hopt' | 'sopt'."""
+    m = "".join(ch for ch in str(method).lower() if ch.isalnum())
+    if m not in METHODS:
+        raise ValueError(f"unknown solver {method!r} (known: Bas., H.Opt., S.Opt.)")
+    return m
+
+
+def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "sopt", *,
+          weighting: str = "paper", sigma_px: float | None = None, sigma_h: float = SIGMA_H_DEFAULT,
+          mu: float = 1.0, robust: bool = True, height_model: str = "common",
+          limits: Limits | None = None) -> PoseSolution:
+    """Estimate the vehicle pose with Bas., H.Opt. or S.Opt.
+
+    observations: TagObservations of this vehicle's tags from one or more cameras (ideal pixels).
+    sigma_px: corner noise per pixel coordinate if known; else estimated from the residuals.
+    sigma_h: standard deviation of the true roof height about vehicle.height (H.Opt.'s covariance and
+    S.Opt.'s principled weighting and covariance; the outlier and layout tests allow for it).
+    mu: S.Opt.'s paper weighting of the height residuals (1/m). height_model: "common" (the roof is off
+    by one offset, a bounce) or "independent" (each corner by its own), for S.Opt.
+    robust: drop tags whose corners disagree with the rest. limits: when to refuse a pose.
+    Never raises on bad data: an unusable or implausible result comes back with ok=False and `error`."""
+    method = canonical_method(method)
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, not {weighting!r}")
+    if height_model not in HEIGHT_MODELS:
+        raise ValueError(f"height_model must be one of {HEIGHT_MODELS}, not {height_model!r}")
+    if sigma_px is not None and not sigma_px > 0:
+        raise ValueError("sigma_px must be positive (or None to estimate it)")
+    if not sigma_h >= 0 or (method == "sopt" and weighting == "principled" and not sigma_h > 0):
+        raise ValueError("sigma_h must be >= 0, and > 0 for principled S.Opt.")
+    limits = limits or Limits()
+    h = float(vehicle.height)
+
+    usable, dropped = _usable(vehicle, observations)
+    if not usable:
+        why = "; ".join(sorted({d["reason"] for d in dropped})) or "none given"
+        return PoseSolution(ok=False, method=method, dropped_tags=dropped,
+                            error=f"no usable tag observations ({why})")
+    corners = build_corners(vehicle, usable)
+    if robust and len(corners.units) >= 2:
+        with np.errstate(all="ignore"):
+            keep, outliers = screen_outliers(corners, h, sigma_px, sigma_h, limits.outlier_alpha)
+        dropped += outliers
+        corners = corners.subset(keep)
+
+    # Hopeless data (garbage corners) produce infinities on the way to an ok=False; not worth warnings.
+    with np.errstate(all="ignore"):
+        try:
+            fits = _fit(method, corners, h, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
+                        height_model=height_model)
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError) as e:
+            return _failed(method, corners, dropped, f"solver failed: {e}")
+        if fits is None:
+            return _failed(method, corners, dropped, "no corner back-projects onto the roof plane")
+        fit, layout_fit = fits
+        error = implausibility(fit, layout_fit, h, limits, sigma_px)
+    if error:
+        return _failed(method, corners, dropped, error, fit)
+    sol = fit.solution()
+    sol.dropped_tags = dropped
+    return sol
+
+
+def _fit(method: str, c: Corners, h: float, *, weighting, sigma_px, sigma_h, mu,
+         height_model) -> tuple[Fit, Fit] | None:
+    """(the method's fit, the H.Opt. fit that judges the corners against the tag layout)."""
+    bas = fit_bas(c, sigma_px, covariance=(method == "bas"))
+    yaw0 = float(bas.theta[2]) if bas.converged and np.all(np.isfinite(bas.theta)) else None
+    start = initial_pose(c, h, yaw0)
+    if start is None:
+        return None
+    hopt = fit_hopt(c, h, start, sigma_px, sigma_h)
+    if method == "bas":
+        return bas, hopt
+    if method == "hopt":
+        return hopt, hopt
+    sopt = fit_sopt(c, h, hopt.theta, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
+                    sigma_weight=hopt.sigma_px, height_model=height_model)
+    return sopt, hopt
+
+
+def _usable(vehicle: Vehicle, observations) -> tuple[list[TagObservation], list[dict]]:
+    usable, dropped = [], []
+    seen: dict[tuple[int, str], int] = {}
+    for obs in observations:
+        cam_id = getattr(getattr(obs, "camera", None), "id", None)
+        reason = None
+        if cam_id is None:
+            reason = "no camera"
+        elif obs.tag_id not in vehicle.tags:
+            reason = "tag not on this vehicle"
+        else:
+            c = np.asarray(obs.corners, dtype=float)
+            if c.shape != (4, 2) or not np.all(np.isfinite(c)):
+                reason = "corners are not 4 finite pixels"
+        if reason:
+            dropped.append({"tag": int(obs.tag_id), "camera": str(cam_id), "reason": reason})
+            continue
+        key = (int(obs.tag_id), cam_id)
+        if key in seen:
+            dropped.append({"tag": key[0], "camera": cam_id, "reason": "tag seen twice by one camera"})
+            seen[key] = -1
+            continue
+        seen[key] = len(usable)
+        usable.append(obs)
+    twice = {k for k, v in seen.items() if v == -1}
+    kept = [o for o in usable if (int(o.tag_id), o.camera.id) not in twice]
+    return kept, dropped
+
+
+def _failed(method: str, c: Corners, dropped: list[dict], error: str, fit: Fit | None = None) -> PoseSolution:
+    return PoseSolution(ok=False, method=method, tags=c.tag_ids, dropped_tags=dropped, cameras=c.camera_ids,
+                        error=error, rms_px=fit.rms_px if fit is not None else math.nan,
+                        sigma_px=fit.sigma_px if fit is not None else math.nan, n_corners=c.n)

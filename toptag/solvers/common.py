@@ -1,0 +1,147 @@
+"""What every solver returns, and the statistics they share (noise estimate, covariances)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from toptag.geometry import wrap_angle
+from toptag.solvers.model import Corners, IX, IY, IYAW
+
+SIGMA_H_DEFAULT = 0.2 / math.sqrt(12.0)  # a uniform ±10 cm roof bounce
+SIGMA_FLOOR_PX = 0.1  # no detector is better than this; keeps exact data from claiming zero variance
+SIGMA_PRIOR_PX = 0.5  # typical corner noise, pooled in when the residual has too few degrees of freedom
+MIN_SIGMA_DOF = 4.0
+
+
+@dataclass
+class PoseSolution:
+    """A vehicle pose from one frame's tag corners.
+
+    x, y: world position (m) of the vehicle origin (for S.Opt. and Bas.: of the vehicle-top frame origin,
+    the roof point above the vehicle centre); yaw in (-pi, pi]; z: the roof (tag plane) height found (H.Opt.
+    reports the vehicle height it assumed). covariance: 3x3 over (x, y, yaw). rms_px: RMS over the
+    corners used of the reprojection error's length (pixels; about sqrt(2)·sigma_px for a good fit, as
+    sigma_px is per image axis). When ok is False the pose fields are NaN and error says why in one
+    line."""
+
+    ok: bool
+    method: str
+    x: float = math.nan
+    y: float = math.nan
+    z: float = math.nan
+    yaw: float = math.nan
+    covariance: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    rms_px: float = math.nan
+    tags: list[int] = field(default_factory=list)
+    dropped_tags: list[dict] = field(default_factory=list)  # {"tag", "camera", "reason"}
+    cameras: list[str] = field(default_factory=list)
+    error: str | None = None
+    sigma_px: float = math.nan  # pixel noise the covariance assumes (given or estimated)
+    n_corners: int = 0
+
+    @property
+    def position_sigma(self) -> float:
+        """RMS position uncertainty (m): sqrt of the trace of the x, y covariance block."""
+        return float(math.sqrt(max(self.covariance[0, 0] + self.covariance[1, 1], 0.0)))
+
+    @property
+    def yaw_sigma(self) -> float:
+        return float(math.sqrt(max(self.covariance[2, 2], 0.0)))
+
+    def pose(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.yaw])
+
+    def to_dict(self) -> dict:
+        return {
+            "ok": bool(self.ok),
+            "method": self.method,
+            "x": _json_float(self.x),
+            "y": _json_float(self.y),
+            "z": _json_float(self.z),
+            "yaw": _json_float(self.yaw),
+            "covariance": [[_json_float(v) for v in row] for row in np.asarray(self.covariance)],
+            "rms_px": _json_float(self.rms_px),
+            "sigma_px": _json_float(self.sigma_px),
+            "n_corners": int(self.n_corners),
+            "tags": [int(t) for t in self.tags],
+            "dropped_tags": [{"tag": int(d["tag"]), "camera": str(d["camera"]), "reason": str(d["reason"])}
+                             for d in self.dropped_tags],
+            "cameras": [str(c) for c in self.cameras],
+            "error": self.error,
+        }
+
+
+def _json_float(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+@dataclass
+class Fit:
+    """A solver's raw result before the plausibility checks: the 6-vector pose and its statistics."""
+
+    method: str
+    theta: np.ndarray  # (x, y, yaw, z, pitch, roll)
+    covariance: np.ndarray  # (3,3) over x, y, yaw
+    rms_px: float
+    sigma_px: float
+    corners: Corners  # the observations actually used
+    converged: bool = True
+    dof: float = math.nan  # degrees of freedom left in the pixel residuals
+    # The plausibility test's inputs. fit_rms_px: RMS of the residual of what the solver fits to the
+    # pixels (Bas.: the homography, whose decomposition adds pose error that is no sign of bad data;
+    # others: rms_px). height_rms_px: per-corner RMS of the pixel residual that a one-sigma roof-height
+    # error leaves unexplained, so that a bouncing bus is not mistaken for bad corners.
+    fit_rms_px: float = math.nan
+    height_rms_px: float = 0.0
+    note: str | None = None  # why the fit is not usable, if the solver itself knows
+
+    def solution(self) -> PoseSolution:
+        t = self.theta
+        return PoseSolution(ok=True, method=self.method, x=float(t[IX]), y=float(t[IY]), z=float(t[3]),
+                            yaw=wrap_angle(t[IYAW]), covariance=self.covariance, rms_px=self.rms_px,
+                            tags=self.corners.tag_ids, cameras=self.corners.camera_ids,
+                            sigma_px=self.sigma_px, n_corners=self.corners.n)
+
+
+def rms(r_px: np.ndarray) -> float:
+    """RMS reprojection error per corner (pixels, over both image axes together)."""
+    n = len(r_px) // 2
+    return float(math.sqrt(r_px @ r_px / n)) if n else math.nan
+
+
+def estimate_sigma(ss: float, dof: float, floor: float = SIGMA_FLOOR_PX,
+                   prior: float = SIGMA_PRIOR_PX) -> float:
+    """Per-coordinate pixel noise from a residual sum of squares with `dof` degrees of freedom.
+
+    With few degrees of freedom the estimate is nearly random (one tag in Bas. leaves 2), so it is
+    pooled with a typical detector noise until MIN_SIGMA_DOF are reached."""
+    dof = max(float(dof), 0.0)
+    if dof >= MIN_SIGMA_DOF:
+        s2 = ss / dof
+    else:
+        s2 = (ss + (MIN_SIGMA_DOF - dof) * prior ** 2) / MIN_SIGMA_DOF
+    return float(max(math.sqrt(max(s2, 0.0)), floor))
+
+
+def safe_inverse(A: np.ndarray) -> np.ndarray:
+    """Inverse of a normal matrix, or all-inf when the data do not determine the parameters."""
+    try:
+        if not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e15:
+            raise np.linalg.LinAlgError
+        return np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        return np.full_like(A, np.inf)
+
+
+def procrustes_planar(world_xy: np.ndarray, roof_xy: np.ndarray) -> tuple[float, float, float]:
+    """(x, y, yaw) best mapping vehicle-frame points onto world points in the plane (2-D Kabsch)."""
+    mw, mr = world_xy.mean(axis=0), roof_xy.mean(axis=0)
+    a, b = roof_xy - mr, world_xy - mw
+    yaw = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
+    c, s = math.cos(yaw), math.sin(yaw)
+    x = mw[0] - (c * mr[0] - s * mr[1])
+    y = mw[1] - (s * mr[0] + c * mr[1])
+    return float(x), float(y), float(yaw)

@@ -1,0 +1,68 @@
+"""H.Opt.: (x, y, yaw) least squares of reprojection error with the tag plane fixed at the roof height."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from toptag.geometry import rot_z
+from toptag.solvers.common import Fit, estimate_sigma, procrustes_planar, rms, safe_inverse
+from toptag.solvers.lm import levenberg_marquardt
+from toptag.solvers.model import IZ, Corners, evaluate, planar_theta
+
+PLANAR = [0, 1, 2]  # x, y, yaw within theta
+
+
+def backprojected(c: Corners, h: float) -> np.ndarray:
+    """Observed corners back-projected onto the world plane z = h (N,3), NaN where the ray misses."""
+    out = np.empty((c.n, 3))
+    for cam_id in c.camera_ids:
+        rows = c.camera_rows(cam_id)
+        cam = c.units[int(c.unit_of[rows][0])].camera
+        out[rows] = cam.backproject_to_plane(c.pixels[rows], h, distorted=False)
+    return out
+
+
+def initial_pose(c: Corners, h: float, yaw0: float | None) -> tuple[float, float, float] | None:
+    """SPEC's start: x, y from the mean back-projected corner (less the rotated mean roof corner, so
+    that the vehicle origin and not the tag centroid is estimated); yaw from Bas. when given, else
+    from a planar fit of the back-projected corners."""
+    W = backprojected(c, h)
+    ok = np.all(np.isfinite(W), axis=1)
+    if ok.sum() < 2:
+        return None
+    P = c.points[ok]
+    if yaw0 is None or not math.isfinite(yaw0):
+        yaw0 = procrustes_planar(W[ok, :2], P[:, :2])[2]
+    m = W[ok].mean(axis=0) - rot_z(yaw0) @ P.mean(axis=0)
+    return float(m[0]), float(m[1]), float(yaw0)
+
+
+def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: float | None = None,
+             sigma_h: float = 0.0) -> Fit:
+    """3-DOF fit from `start` = (x, y, yaw). The covariance adds the roof-height uncertainty sigma_h
+    carried through dtheta/dh: the plane is fixed at h, so an error in h moves the answer."""
+
+    def fun(p):
+        ev = evaluate(c, planar_theta(p[0], p[1], p[2], h))
+        if not ev.in_front:
+            return np.full(2 * c.n, np.inf), ev.J_px[:, PLANAR]
+        return ev.r_px, ev.J_px[:, PLANAR]
+
+    res = levenberg_marquardt(fun, np.asarray(start, dtype=float))
+    theta = planar_theta(res.theta[0], res.theta[1], res.theta[2], h)
+    ev = evaluate(c, theta)
+    J = ev.J_px[:, PLANAR]
+    N_inv = safe_inverse(J.T @ J)
+    sigma = sigma_px if sigma_px is not None else estimate_sigma(float(ev.r_px @ ev.r_px), 2 * c.n - 3)
+    J_h = ev.J_px[:, IZ]
+    dtheta_dh = -N_inv @ (J.T @ J_h)
+    cov = sigma ** 2 * N_inv + sigma_h ** 2 * np.outer(dtheta_dh, dtheta_dh)
+    height_rms = sigma_h * rms(J_h + J @ dtheta_dh)
+    note = None
+    if not ev.in_front:
+        note = "pose puts the tag behind the camera"
+    elif not res.converged:
+        note = "H.Opt. did not converge"
+    return Fit("hopt", theta, cov, rms(ev.r_px), sigma, c, converged=res.converged and ev.in_front,
+               dof=2 * c.n - 3, fit_rms_px=rms(ev.r_px), height_rms_px=height_rms, note=note)

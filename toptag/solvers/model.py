@@ -1,0 +1,196 @@
+"""The measurement model shared by every solver: observed tag corners, the vehicle-top pose, and the
+projection of one into the other with its analytic Jacobian.
+
+Pose parameters are always the 6-vector theta = (x, y, yaw, z, pitch, roll): world position of the
+vehicle-top frame origin (the roof point above the vehicle centre), and ZYX Euler angles, so that the
+roof rotation is R = Rz(yaw) · Ry(pitch) · Rx(roll). (x, y, yaw) come first so that every covariance's
+top-left 3x3 block is the one SPEC's pose reports; H.Opt. is the same model with z = h and no tilt.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from toptag.camera import Camera
+from toptag.detection import TagObservation
+from toptag.vehicle import Vehicle
+
+IX, IY, IYAW, IZ, IPITCH, IROLL = range(6)
+MIN_DEPTH = 1e-6  # metres in front of the camera; anything closer is "behind"
+
+
+@dataclass(frozen=True)
+class Unit:
+    """One tag seen by one camera: the unit the robustness test keeps or drops."""
+
+    tag_id: int
+    camera: Camera
+
+
+@dataclass(frozen=True)
+class Corners:
+    """The corners of one vehicle's tag observations, stacked over tags and cameras.
+
+    Per observed corner n: its vehicle-top coordinates, its ideal pixel, the observation unit, the
+    physical corner it is (a tag seen by two cameras has its corners twice in the image data but only
+    once on the roof), and its camera's projection parameters copied per row so that projection is one
+    vectorised pass whatever the number of cameras."""
+
+    units: tuple[Unit, ...]
+    unit_of: np.ndarray  # (N,) index into units
+    pixels: np.ndarray  # (N,2)
+    corner_of: np.ndarray  # (N,) index into roof_points
+    roof_points: np.ndarray  # (M,3) distinct physical corners, vehicle-top frame
+    cam_R: np.ndarray  # (N,3,3)
+    cam_t: np.ndarray  # (N,3)
+    cam_K: np.ndarray  # (N,2,2) upper-left block of K (focal lengths and skew)
+    cam_c: np.ndarray  # (N,2) principal point
+
+    @property
+    def n(self) -> int:
+        return len(self.pixels)
+
+    @property
+    def points(self) -> np.ndarray:
+        return self.roof_points[self.corner_of]
+
+    @property
+    def tag_ids(self) -> list[int]:
+        return sorted({u.tag_id for u in self.units})
+
+    @property
+    def camera_ids(self) -> list[str]:
+        return sorted({u.camera.id for u in self.units})
+
+    def subset(self, keep_units) -> "Corners":
+        """The same data restricted to the listed unit indices (units renumbered in the given order)."""
+        keep_units = list(keep_units)
+        units = tuple(self.units[i] for i in keep_units)
+        remap = {old: new for new, old in enumerate(keep_units)}
+        rows = np.flatnonzero(np.isin(self.unit_of, keep_units))
+        used = np.unique(self.corner_of[rows])
+        corner_map = np.full(len(self.roof_points), -1)
+        corner_map[used] = np.arange(len(used))
+        return Corners(units, np.array([remap[u] for u in self.unit_of[rows]], dtype=int),
+                       self.pixels[rows], corner_map[self.corner_of[rows]], self.roof_points[used],
+                       self.cam_R[rows], self.cam_t[rows], self.cam_K[rows], self.cam_c[rows])
+
+    def camera_rows(self, camera_id: str) -> np.ndarray:
+        return np.array([self.units[u].camera.id == camera_id for u in self.unit_of])
+
+
+def build_corners(vehicle: Vehicle, observations: list[TagObservation]) -> Corners:
+    """Stack observations that are already known valid (tag in the vehicle, finite (4,2) corners)."""
+    units, unit_of, pixels, corner_of = [], [], [], []
+    cams = []
+    roof_keys: dict[tuple[int, int], int] = {}
+    roof_points = []
+    for obs in observations:
+        u = len(units)
+        units.append(Unit(int(obs.tag_id), obs.camera))
+        pts = vehicle.tag_corners(obs.tag_id)
+        for k in range(4):
+            key = (int(obs.tag_id), k)
+            if key not in roof_keys:
+                roof_keys[key] = len(roof_points)
+                roof_points.append(pts[k])
+            corner_of.append(roof_keys[key])
+        unit_of.extend([u] * 4)
+        pixels.append(np.asarray(obs.corners, dtype=float).reshape(4, 2))
+        cams.extend([obs.camera] * 4)
+    return Corners(
+        units=tuple(units),
+        unit_of=np.asarray(unit_of, dtype=int),
+        pixels=np.vstack(pixels) if pixels else np.zeros((0, 2)),
+        corner_of=np.asarray(corner_of, dtype=int),
+        roof_points=np.asarray(roof_points, dtype=float).reshape(-1, 3),
+        cam_R=np.array([c.R for c in cams]).reshape(-1, 3, 3),
+        cam_t=np.array([c.t for c in cams]).reshape(-1, 3),
+        cam_K=np.array([c.K[:2, :2] for c in cams]).reshape(-1, 2, 2),
+        cam_c=np.array([c.K[:2, 2] for c in cams]).reshape(-1, 2),
+    )
+
+
+# ---- pose ------------------------------------------------------------------------------------
+def euler_rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    return _euler_with_derivatives(yaw, pitch, roll)[0]
+
+
+def _euler_with_derivatives(yaw, pitch, roll):
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    dRz = np.array([[-sy, -cy, 0.0], [cy, -sy, 0.0], [0.0, 0.0, 0.0]])
+    dRy = np.array([[-sp, 0.0, cp], [0.0, 0.0, 0.0], [-cp, 0.0, -sp]])
+    dRx = np.array([[0.0, 0.0, 0.0], [0.0, -sr, -cr], [0.0, cr, -sr]])
+    RyRx = Ry @ Rx
+    return Rz @ RyRx, dRz @ RyRx, Rz @ dRy @ Rx, Rz @ Ry @ dRx
+
+
+def euler_angles(R) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) of R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    R = np.asarray(R, dtype=float)
+    return (float(np.arctan2(R[1, 0], R[0, 0])), float(-np.arcsin(np.clip(R[2, 0], -1.0, 1.0))),
+            float(np.arctan2(R[2, 1], R[2, 2])))
+
+
+def theta_from_rt(R_wv, T_wv) -> np.ndarray:
+    yaw, pitch, roll = euler_angles(R_wv)
+    T = np.asarray(T_wv, dtype=float)
+    return np.array([T[0], T[1], yaw, T[2], pitch, roll])
+
+
+def planar_theta(x: float, y: float, yaw: float, z: float) -> np.ndarray:
+    return np.array([x, y, yaw, z, 0.0, 0.0])
+
+
+def roof_world(theta, points) -> tuple[np.ndarray, np.ndarray]:
+    """World coordinates (M,3) of vehicle-top points and their derivative (M,3,6) w.r.t. theta."""
+    R, dyaw, dpitch, droll = _euler_with_derivatives(theta[IYAW], theta[IPITCH], theta[IROLL])
+    P = points @ R.T + np.array([theta[IX], theta[IY], theta[IZ]])
+    dP = np.zeros((len(points), 3, 6))
+    dP[:, 0, IX] = 1.0
+    dP[:, 1, IY] = 1.0
+    dP[:, 2, IZ] = 1.0
+    dP[:, :, IYAW] = points @ dyaw.T
+    dP[:, :, IPITCH] = points @ dpitch.T
+    dP[:, :, IROLL] = points @ droll.T
+    return P, dP
+
+
+@dataclass
+class Evaluation:
+    """Model evaluated at theta: pixel residuals and roof-corner heights with their Jacobians."""
+
+    r_px: np.ndarray  # (2N,) predicted minus observed pixels
+    J_px: np.ndarray  # (2N,6)
+    z: np.ndarray  # (M,) world z of each physical corner
+    J_z: np.ndarray  # (M,6)
+    depth: np.ndarray  # (N,) camera-frame depth of each observed corner
+
+    @property
+    def in_front(self) -> bool:
+        return bool(np.all(self.depth > MIN_DEPTH))
+
+
+def evaluate(c: Corners, theta) -> Evaluation:
+    P_roof, dP_roof = roof_world(theta, c.roof_points)
+    P, dP = P_roof[c.corner_of], dP_roof[c.corner_of]
+    Xc = np.einsum("nij,nj->ni", c.cam_R, P) + c.cam_t
+    Z = Xc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iz = 1.0 / Z
+        xn = Xc[:, :2] * iz[:, None]
+        uv = np.einsum("nij,nj->ni", c.cam_K, xn) + c.cam_c
+        # d(normalised)/d(X_cam), then chain through K, R_wc and the pose.
+        D = np.zeros((len(Z), 2, 3))
+        D[:, 0, 0] = iz
+        D[:, 1, 1] = iz
+        D[:, :, 2] = -xn * iz[:, None]
+        J = c.cam_K @ D @ c.cam_R @ dP
+    return Evaluation((uv - c.pixels).ravel(), J.reshape(-1, 6), P_roof[:, 2], dP_roof[:, 2, :], Z)
+
