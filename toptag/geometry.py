@@ -31,17 +31,19 @@ def rodrigues(rvec) -> np.ndarray:
 def rotation_vector(R) -> np.ndarray:
     """Rotation vector of a rotation matrix (inverse of `rodrigues`), robust near pi."""
     R = np.asarray(R, dtype=float)
-    cos_th = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
-    th = np.arccos(cos_th)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    # atan2 keeps full precision near 0 and pi, where arccos of the trace loses half the digits.
+    th = np.arctan2(np.linalg.norm(w) / 2, (np.trace(R) - 1) / 2)
     if th < 1e-8:
         return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
-    if np.pi - th < 1e-6:
-        B = (R + np.eye(3)) / 2
-        axis = np.sqrt(np.clip(np.diag(B), 0, None))
-        i = int(np.argmax(axis))
-        axis = B[i] / axis[i]
+    if th > np.pi / 2:
+        # sin(th) is small near pi: read the axis from the symmetric part, k kᵀ = (S - cos th I) / (1 - cos th).
+        kk = ((R + R.T) / 2 - np.cos(th) * np.eye(3)) / (1 - np.cos(th))
+        i = int(np.argmax(np.diag(kk)))
+        axis = kk[i] / np.sqrt(kk[i, i])
+        if axis @ w < 0:
+            axis = -axis
         return th * axis / np.linalg.norm(axis)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return th * w / (2 * np.sin(th))
 
 

@@ -1,0 +1,25 @@
+import numpy as np
+import pytest
+
+from toptag.geometry import nearest_rotation, rodrigues, rotation_vector, wrap_angle
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-10, 1e-4, 0.7, np.pi / 2, 2.5, np.pi - 1e-4, np.pi - 1e-11])
+def test_rotation_vector_round_trips_over_the_whole_range(angle):
+    rng = np.random.default_rng(int(angle * 1e6) % 1000)
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        R = rodrigues(axis * angle)
+        assert np.abs(rodrigues(rotation_vector(R)) - R).max() < 1e-12
+
+
+def test_wrap_angle_range():
+    a = wrap_angle(np.array([-np.pi, np.pi, 3 * np.pi, -3 * np.pi + 1e-9, 0.5]))
+    assert np.all(a > -np.pi) and np.all(a <= np.pi) and np.isclose(a[0], np.pi) and np.isclose(a[4], 0.5)
+
+
+def test_nearest_rotation_is_a_rotation():
+    M = np.random.default_rng(5).normal(size=(3, 3))
+    R = nearest_rotation(M)
+    assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
