@@ -1,0 +1,707 @@
+"""Bus pose filter: EKF on IMU / wheel odometry, updated by delayed RSU pose fixes at their capture time.
+
+Pure core: no I/O, no Zenoh, no clock. Every call carries integer-nanosecond timestamps.
+
+State (world frame of SPEC.md)::
+
+    x, y [m], yaw [rad, (-pi, pi]], v [m/s, forward speed], yaw_rate [rad/s],
+    gyro_bias [rad/s], wheel_scale [-] (wheel reads (1 + wheel_scale) * v)
+
+Prediction runs at the IMU rate (100 Hz): the accelerometer's forward axis drives v, yaw_rate is a
+random walk (continuous white yaw acceleration, so the yaw/yaw-rate coupling integrates the gyro with
+the trapezoid rule), and each IMU sample updates yaw_rate + gyro_bias with the gyro and
+(1 + wheel_scale) * v with the wheel speed. A pose fix updates (x, y, yaw) with its own covariance.
+
+Back-projection: the filter keeps a ring buffer (`FilterConfig.buffer_s`, >= 1 s) of states,
+covariances, gate states and IMU inputs, one per IMU sample, and every fix in that window in the
+canonical order (capture time, source, sequence). A fix stamped t is applied exactly at t (the step
+containing t is split there) and every later step is re-propagated, lazily, when the present is next
+needed. Gate decisions are re-taken during re-propagation, so the result depends only on the set of
+fixes and IMU samples, never on their arrival order: an out-of-order replay reproduces the in-order
+estimate to the last bit.
+
+Gating: chi-square test on the innovation, d² = νᵀ S⁻¹ ν with S = H P Hᵀ + R, 3 dof. In tracking, the
+filter's own pose covariance entering S is capped (`gate_max_pos_sigma`, `gate_max_yaw_sigma`): a long
+run without accepted fixes cannot widen the gate without bound, so a wild fix stays rejected however
+long the filter has been starved. Re-acquisition after a genuine drift needs a consensus: once no fix
+has been accepted for `reacquire_after_s`, a rejected fix is applied (with the pose covariance
+inflated by its innovation) only if at least `reacquire_min_fixes` recent rejected fixes from at least
+`reacquire_min_sources` RSUs agree with it.
+
+Start-up: `initialize(...)` from a coarse prior (then fixes are gated against the full prior and the
+first one is applied once `acquire_min_fixes` agree), or automatically from the first confident fix
+(pose sigma <= `init_max_pos_sigma`). IMU samples received before start-up are kept and replayed.
+"""
+from __future__ import annotations
+
+import math
+from bisect import bisect_left, bisect_right
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from services.bus.fixes import FixOutcome, FixRecord, PoseFix, count_outcomes
+
+STATE_NAMES = ("x", "y", "yaw", "speed", "yaw_rate", "gyro_bias", "wheel_scale")
+NX = 7
+IX, IY, IYAW, IV, IW, IB, IK = range(NX)
+ACQUIRING, TRACKING = 1, 2
+_MODE_NAMES = {ACQUIRING: "acquiring", TRACKING: "tracking"}
+_EYE = np.eye(NX)
+_TWO_PI = 2 * math.pi
+
+# chi-square quantiles, 3 dof (avoid importing scipy in the service)
+_CHI2_3 = {0.95: 7.814727903251178, 0.99: 11.344866730144373, 0.995: 12.838156466598647,
+           0.999: 16.26623619623813, 0.9999: 21.10751340254392}
+
+
+def wrap(a: float) -> float:
+    """Wrap an angle to (-pi, pi]."""
+    w = math.fmod(a + math.pi, _TWO_PI)
+    if w < 0:
+        w += _TWO_PI
+    w -= math.pi
+    return math.pi if w == -math.pi else w
+
+
+def chi2_3dof(p: float) -> float:
+    if p in _CHI2_3:
+        return _CHI2_3[p]
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(p, 3))
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Tuning. Noise densities are continuous time; sigmas are per sample."""
+    buffer_s: float = 2.0  # history kept for delayed fixes (>= 1 s)
+    # process noise
+    pos_noise_density: float = 1e-3  # m/sqrt(s): unmodelled slip of the unicycle model
+    yaw_noise_density: float = 2e-4  # rad/sqrt(s): unmodelled yaw motion
+    accel_noise_density: float = 0.05  # m/s^2/sqrt(Hz): accelerometer noise + bias, drives v
+    yaw_accel_density: float = 1.0  # rad/s^2/sqrt(Hz): yaw-rate random walk
+    gyro_bias_walk: float = 2e-5  # rad/s/sqrt(s)
+    wheel_scale_walk: float = 1e-5  # 1/sqrt(s)
+    # IMU / odometry measurement noise (per sample)
+    gyro_sigma: float = 5e-3  # rad/s
+    wheel_sigma: float = 0.03  # m/s
+    # priors at start-up
+    gyro_bias_sigma0: float = 0.01  # rad/s
+    wheel_scale_sigma0: float = 0.02
+    speed_sigma0: float = 0.2  # m/s around the wheel reading (2.0 without any wheel reading)
+    # gating
+    gate_probability: float | None = 0.999  # None: no gate (every valid fix is applied)
+    gate_max_pos_sigma: float = 0.5  # m: cap on the filter's own position sigma inside S
+    gate_max_yaw_sigma: float = math.radians(3.0)
+    reacquire_after_s: float = 1.0
+    reacquire_window_s: float = 1.0
+    reacquire_min_fixes: int = 4
+    reacquire_min_sources: int = 2
+    consensus_sigma: tuple[float, float, float] = (0.3, 0.3, math.radians(3.0))
+    consensus_probability: float = 0.99
+    acquire_min_fixes: int = 2
+    acquire_min_sources: int = 1
+    # start-up from a fix
+    init_from_fix: bool = True
+    init_max_pos_sigma: float = 0.5
+    init_max_yaw_sigma: float = math.radians(10.0)
+    # admission
+    max_future_s: float = 0.5  # a fix stamped later than newest IMU + this is refused
+    # health
+    degraded_after_s: float = 1.0
+    degraded_pos_sigma: float = 0.5
+    lost_after_s: float = 10.0
+    lost_pos_sigma: float = 2.0
+
+    def __post_init__(self):
+        if self.buffer_s < 1.0:
+            raise ValueError("buffer_s must cover at least 1 s")
+
+    @property
+    def gate_threshold(self) -> float:
+        return math.inf if self.gate_probability is None else chi2_3dof(self.gate_probability)
+
+
+@dataclass(frozen=True)
+class Health:
+    """What a planner needs to know about the fused pose."""
+    status: str  # acquiring | ok | degraded (no fix for degraded_after_s, or sigma) | lost
+    since_last_fix_s: float  # estimate time - capture time of the last applied fix (inf if none)
+    last_fix_delay_s: float  # arrival - capture of the last applied fix (nan if unknown)
+    last_fix_source: str | None  # RSU of the last applied fix
+    last_received_delay_s: float  # arrival - capture of the most recently received fix, any outcome
+    rejected: int  # fixes rejected by the gate (total)
+    consecutive_rejections: int  # rejected since the last applied fix
+    accepted: int  # fixes applied (accepted, re-acquired, start-up)
+    pos_sigma_m: float  # sqrt of the largest eigenvalue of the position covariance
+    yaw_sigma_rad: float
+    extrapolated_s: float  # how far beyond the newest IMU sample the estimate was predicted
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+    def protocol_fields(self) -> dict:
+        """The fields of protocol.messages.FusionHealth."""
+        def ns(v):
+            return None if not math.isfinite(v) else int(round(v * 1e9))
+        return {"accepted_fixes": self.accepted, "rejected_fixes": self.rejected,
+                "since_last_fix_ns": ns(self.since_last_fix_s), "last_fix_delay_ns": ns(self.last_fix_delay_s),
+                "last_fix_rsu": self.last_fix_source}
+
+
+@dataclass(frozen=True)
+class FusedPose:
+    t_ns: int
+    x: float
+    y: float
+    yaw: float
+    speed: float
+    yaw_rate: float
+    gyro_bias: float
+    wheel_scale: float
+    cov: np.ndarray  # 3x3 covariance of (x, y, yaw)
+    state_cov: np.ndarray  # 7x7 covariance of the full state (STATE_NAMES order)
+    health: Health
+
+    @property
+    def state(self) -> np.ndarray:
+        return np.array([self.x, self.y, self.yaw, self.speed, self.yaw_rate, self.gyro_bias, self.wheel_scale])
+
+    def to_dict(self) -> dict:
+        return {"t_ns": self.t_ns, "x": self.x, "y": self.y, "yaw": self.yaw, "speed": self.speed,
+                "yaw_rate": self.yaw_rate, "gyro_bias": self.gyro_bias, "wheel_scale": self.wheel_scale,
+                "cov": self.cov.tolist(), "health": self.health.to_dict()}
+
+    def protocol_fields(self) -> dict:
+        """The fields of protocol.messages.FusedPose except bus_id (the service adds it)."""
+        return {"t_ns": self.t_ns, "x": self.x, "y": self.y, "yaw": self.yaw, "speed": self.speed,
+                "yaw_rate": self.yaw_rate, "covariance": self.cov.tolist(), "health": self.health.protocol_fields()}
+
+
+class _Cand(NamedTuple):
+    """A fix that was not applied, remembered for consensus."""
+    t_ns: int
+    source: str
+    nu: np.ndarray  # innovation (x, y, yaw) against the filter at t_ns
+    R: np.ndarray
+    p_diag: np.ndarray  # diagonal of the filter's pose covariance at t_ns
+
+
+class _Gate(NamedTuple):
+    mode: int
+    last_accept_ns: int | None  # capture time of the last applied fix (or trusted start)
+    consecutive: int  # fixes refused since
+    cands: tuple  # refused fixes kept for consensus
+    last_delay_ns: int | None = None  # arrival - capture of the last applied fix
+    last_source: str | None = None
+
+
+class _Step:
+    __slots__ = ("t", "u", "x", "P", "g")
+
+    def __init__(self, t, u, x, P, g):
+        self.t, self.u, self.x, self.P, self.g = t, u, x, P, g
+
+
+class BusFilter:
+    """Delayed-fix EKF. See the module docstring.
+
+    add_imu(t_ns, gyro_z, accel_x, accel_y=None, wheel_speed=None) -> bool   (alias: predict)
+    add_fix(fix, arrival_ns=None) -> FixOutcome       (fix: PoseFix, or a dict / message with its fields)
+    initialize(t_ns, x, y, yaw, cov=None, pos_sigma=5.0, yaw_sigma=pi, speed=None, speed_sigma=None,
+               trusted=False)
+    estimate(t_ns=None) -> FusedPose | None           (None before start-up)
+    counters() -> dict                                (final outcome counts, totals and per source)
+    fix_outcomes() -> list[(key, FixOutcome, d2)]      (fixes still in the buffer)
+    """
+
+    def __init__(self, config: FilterConfig | None = None):
+        self.cfg = config or FilterConfig()
+        c = self.cfg
+        self._gate_thr = c.gate_threshold
+        self._buffer_ns = int(round(c.buffer_s * 1e9))
+        self._q_pos = c.pos_noise_density ** 2
+        self._q_yaw = c.yaw_noise_density ** 2
+        self._q_v = c.accel_noise_density ** 2
+        self._q_a = c.yaw_accel_density ** 2
+        self._q_b = c.gyro_bias_walk ** 2
+        self._q_k = c.wheel_scale_walk ** 2
+        self._r_g = c.gyro_sigma ** 2
+        self._r_w = c.wheel_sigma ** 2
+        self._cap = np.array([c.gate_max_pos_sigma, c.gate_max_pos_sigma, c.gate_max_yaw_sigma])
+        self._cons_var = np.asarray(c.consensus_sigma, dtype=float) ** 2
+        self._cons_thr = chi2_3dof(c.consensus_probability)
+        self._steps: list[_Step] = []
+        self._dirty = 0  # index of the first step that needs re-computation (len(steps) when clean)
+        self._fix_t: list[int] = []
+        self._fix_keys: list[tuple] = []
+        self._fix_recs: list[FixRecord] = []
+        self._seen: set[tuple] = set()
+        self._pre_imu: list[tuple[int, tuple]] = []
+        self._last_imu_t: int | None = None
+        self._start_ns: int | None = None
+        self._archived: dict[str, int] = count_outcomes([])
+        self._archived_src: dict[str, dict[str, int]] = {}
+        self._imu_rejected = 0
+        self._imu_count = 0
+        self._last_rx_delay_ns: int | None = None
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def initialized(self) -> bool:
+        return bool(self._steps)
+
+    @property
+    def head_ns(self) -> int | None:
+        """Time of the newest state (newest IMU sample, or the start-up time)."""
+        return self._steps[-1].t if self._steps else None
+
+    @property
+    def buffer_start_ns(self) -> int | None:
+        return self._steps[0].t if self._steps else None
+
+    def predict(self, t_ns: int, gyro_z: float, accel_x: float, accel_y: float | None = None,
+                wheel_speed: float | None = None) -> bool:
+        """Alias of add_imu."""
+        return self.add_imu(t_ns, gyro_z, accel_x, accel_y, wheel_speed)
+
+    def add_imu(self, t_ns: int, gyro_z: float, accel_x: float, accel_y: float | None = None,
+                wheel_speed: float | None = None) -> bool:
+        """One IMU/odometry sample (100 Hz). Samples must come in increasing time; a sample not
+        newer than the previous one is counted and ignored (returns False). accel_y is accepted
+        for completeness and not used (planar model: it is v * yaw_rate)."""
+        t_ns = int(t_ns)
+        bad = not (math.isfinite(gyro_z) and math.isfinite(accel_x)) or \
+            (wheel_speed is not None and not math.isfinite(wheel_speed))
+        if bad or (self._last_imu_t is not None and t_ns <= self._last_imu_t):
+            self._imu_rejected += 1
+            return False
+        self._last_imu_t = t_ns
+        self._imu_count += 1
+        u = (float(gyro_z), float(accel_x), None if wheel_speed is None else float(wheel_speed))
+        if not self._steps:
+            self._pre_imu.append((t_ns, u))
+            cut = t_ns - self._buffer_ns
+            if self._pre_imu[0][0] < cut:
+                self._pre_imu = [p for p in self._pre_imu if p[0] >= cut]
+            return True
+        self._ensure_clean()
+        head = self._steps[-1]
+        if t_ns <= head.t:  # start-up time after this sample
+            return True
+        x, P, g = self._advance(head.x, head.P, head.g, head.t, head.u, t_ns, record=True)
+        x, P = self._imu_update(x, self._yaw_rate_noise(P, (t_ns - head.t) * 1e-9), u)
+        self._steps.append(_Step(t_ns, u, x, P, g))
+        self._dirty = len(self._steps)
+        self._prune()
+        return True
+
+    def initialize(self, t_ns: int, x: float, y: float, yaw: float, cov=None, pos_sigma: float = 5.0,
+                   yaw_sigma: float = math.pi, speed: float | None = None, speed_sigma: float | None = None,
+                   trusted: bool = False):
+        """Start from a prior. By default the prior is coarse (e.g. GNSS-grade, metres): fixes are
+        gated against its full covariance and the first is applied once `acquire_min_fixes` fixes
+        agree with each other. `trusted=True` starts tracking at once, as if a fix had been applied
+        at t_ns (a surveyed start, or dead reckoning). `cov` (3x3 of x, y, yaw) overrides the sigmas."""
+        if self._steps:
+            raise RuntimeError("filter already started")
+        P3 = np.diag([pos_sigma ** 2, pos_sigma ** 2, yaw_sigma ** 2]) if cov is None else \
+            np.asarray(cov, dtype=float).reshape(3, 3)
+        t_ns = int(t_ns)
+        gate = _Gate(TRACKING, t_ns, 0, ()) if trusted else _Gate(ACQUIRING, None, 0, ())
+        self._start(t_ns, np.array([x, y, wrap(yaw)]), P3, gate, speed, speed_sigma)
+
+    def add_fix(self, fix: PoseFix, arrival_ns: int | None = None) -> FixOutcome:
+        """A pose fix (capture time fix.t_ns). `arrival_ns` (or fix.arrival_ns; default the newest
+        IMU time) only feeds the health report. Returns the decision taken now; a fix applied in the
+        past may be re-decided when earlier fixes arrive later (counters() has the final word)."""
+        if not isinstance(fix, PoseFix):
+            fix = PoseFix.from_any(fix)
+        arrival = arrival_ns if arrival_ns is not None else fix.arrival_ns
+        if arrival is None:
+            arrival = self._last_imu_t
+        if fix.problem() is not None:
+            return self._count_now(fix, FixOutcome.INVALID)
+        if arrival is not None:
+            self._last_rx_delay_ns = int(arrival) - fix.t_ns
+        if not self._steps:
+            return self._maybe_start_from(fix, arrival)
+        if (fix.seq is not None and (fix.source, "seq", fix.seq) in self._seen) or \
+                (fix.source, "t", fix.t_ns) in self._seen:
+            return self._count_now(fix, FixOutcome.DUPLICATE)
+        if fix.t_ns <= self._start_ns:
+            return self._count_now(fix, FixOutcome.BEFORE_START)
+        if fix.t_ns <= self._steps[0].t:
+            return self._count_now(fix, FixOutcome.TOO_OLD)
+        head = self._steps[-1].t
+        if fix.t_ns > head + int(self.cfg.max_future_s * 1e9):
+            return self._count_now(fix, FixOutcome.FUTURE)
+        key = fix.key
+        rec = FixRecord(fix, key, FixOutcome.PENDING, arrival_ns=None if arrival is None else int(arrival))
+        i = bisect_right(self._fix_keys, key)
+        self._fix_keys.insert(i, key)
+        self._fix_t.insert(i, fix.t_ns)
+        self._fix_recs.insert(i, rec)
+        self._seen.add((fix.source, "seq", fix.seq))
+        self._seen.add((fix.source, "t", fix.t_ns))
+        if fix.t_ns > head:
+            return FixOutcome.PENDING
+        k = self._step_index_before(fix.t_ns)  # largest k with t_k < t_fix
+        self._dirty = min(self._dirty, k + 1)
+        self._ensure_clean(k + 1)
+        return rec.outcome
+
+    def estimate(self, t_ns: int | None = None) -> FusedPose | None:
+        """Fused pose at t_ns (default: the newest IMU time). Beyond the newest sample the state is
+        predicted (constant acceleration input, constant yaw rate); inside the buffer it is
+        interpolated by prediction from the state before. None before start-up."""
+        if not self._steps:
+            return None
+        self._ensure_clean()
+        head = self._steps[-1]
+        t_ns = head.t if t_ns is None else int(t_ns)
+        if t_ns >= head.t:
+            base = head
+        else:
+            if t_ns < self._steps[0].t:
+                raise ValueError("estimate requested before the start of the buffer")
+            k = self._step_index_at_or_before(t_ns)
+            base = self._steps[k]
+        if t_ns == base.t:
+            x, P, g = base.x, base.P, base.g
+        else:
+            x, P, g = self._advance(base.x, base.P, base.g, base.t, base.u, t_ns, record=False)
+            P = self._yaw_rate_noise(P, (t_ns - base.t) * 1e-9)
+        return self._fused(t_ns, x, P, g, max(0, t_ns - head.t))
+
+    def counters(self) -> dict:
+        """Counts of fix outcomes (final decisions), per source as well, plus IMU counts."""
+        self._ensure_clean()
+        live = count_outcomes(r.outcome for r in self._fix_recs)
+        total = {k: self._archived[k] + live[k] for k in live}
+        per_src: dict[str, dict[str, int]] = {s: dict(v) for s, v in self._archived_src.items()}
+        for r in self._fix_recs:
+            d = per_src.setdefault(r.fix.source, count_outcomes([]))
+            d[r.outcome.value] += 1
+        total["fixes"] = sum(total[o.value] for o in FixOutcome)
+        total["applied"] = sum(total[o.value] for o in FixOutcome if o.applied)
+        total["imu_samples"] = self._imu_count
+        total["imu_rejected"] = self._imu_rejected
+        total["per_source"] = {s: {k: v for k, v in d.items() if v} for s, d in sorted(per_src.items())}
+        return total
+
+    def fix_outcomes(self) -> list[tuple[tuple, FixOutcome, float]]:
+        """(key, outcome, d2) of every fix still in the buffer, in canonical order."""
+        self._ensure_clean()
+        return [(r.key, r.outcome, r.d2) for r in self._fix_recs]
+
+    # ------------------------------------------------------------------ start-up
+    def _maybe_start_from(self, fix: PoseFix, arrival: int | None) -> FixOutcome:
+        c = self.cfg
+        sd = np.sqrt(np.diag(fix.cov))
+        if not c.init_from_fix or max(sd[0], sd[1]) > c.init_max_pos_sigma or sd[2] > c.init_max_yaw_sigma:
+            return self._count_now(fix, FixOutcome.NOT_INITIALIZED)
+        delay = None if arrival is None else int(arrival) - fix.t_ns
+        self._start(fix.t_ns, fix.z_vec, fix.cov, _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source), None, None)
+        self._seen.add((fix.source, "seq", fix.seq))
+        self._seen.add((fix.source, "t", fix.t_ns))
+        return self._count_now(fix, FixOutcome.INITIALIZED)
+
+    def _start(self, t0: int, pose: np.ndarray, P3: np.ndarray, gate: _Gate, speed, speed_sigma):
+        c = self.cfg
+        u0 = None
+        for t, u in self._pre_imu:
+            if t <= t0:
+                u0 = u
+        ref = u0 if u0 is not None else (self._pre_imu[0][1] if self._pre_imu else None)
+        x = np.zeros(NX)
+        P = np.zeros((NX, NX))
+        x[:3] = pose
+        x[IYAW] = wrap(x[IYAW])
+        P[:3, :3] = P3
+        if speed is not None:
+            x[IV] = speed
+            P[IV, IV] = (c.speed_sigma0 if speed_sigma is None else speed_sigma) ** 2
+        elif ref is not None and ref[2] is not None:
+            x[IV] = ref[2]
+            P[IV, IV] = c.speed_sigma0 ** 2 + (ref[2] * c.wheel_scale_sigma0) ** 2
+        else:
+            P[IV, IV] = 2.0 ** 2
+        sb2 = c.gyro_bias_sigma0 ** 2
+        if ref is not None:
+            x[IW] = ref[0]
+            P[IW, IW] = sb2 + self._r_g
+            P[IW, IB] = P[IB, IW] = -sb2
+        else:
+            P[IW, IW] = 0.5 ** 2
+        P[IB, IB] = sb2
+        P[IK, IK] = c.wheel_scale_sigma0 ** 2
+        self._start_ns = t0
+        self._steps = [_Step(t0, u0, x, P, gate)]
+        self._dirty = 1
+        pre, self._pre_imu = self._pre_imu, []
+        for t, u in pre:
+            if t > t0:
+                head = self._steps[-1]
+                xx, PP, g = self._advance(head.x, head.P, head.g, head.t, head.u, t, record=True)
+                xx, PP = self._imu_update(xx, self._yaw_rate_noise(PP, (t - head.t) * 1e-9), u)
+                self._steps.append(_Step(t, u, xx, PP, g))
+        self._dirty = len(self._steps)
+        self._prune()
+
+    # ------------------------------------------------------------------ buffer
+    def _step_index_before(self, t_ns: int) -> int:
+        """Largest k with steps[k].t < t_ns."""
+        return bisect_left(_StepTimes(self._steps), t_ns) - 1
+
+    def _step_index_at_or_before(self, t_ns: int) -> int:
+        return bisect_right(_StepTimes(self._steps), t_ns) - 1
+
+    def _ensure_clean(self, upto: int | None = None):
+        n = len(self._steps)
+        upto = n - 1 if upto is None else min(upto, n - 1)
+        i = max(self._dirty, 1)
+        while i <= upto:
+            prev, cur = self._steps[i - 1], self._steps[i]
+            x, P, g = self._advance(prev.x, prev.P, prev.g, prev.t, prev.u, cur.t, record=True)
+            cur.x, cur.P = self._imu_update(x, self._yaw_rate_noise(P, (cur.t - prev.t) * 1e-9), cur.u)
+            cur.g = g
+            i += 1
+        self._dirty = max(self._dirty, upto + 1)
+
+    def _prune(self):
+        steps = self._steps
+        cut = steps[-1].t - self._buffer_ns
+        n = 0
+        while n + 1 < len(steps) and steps[n + 1].t <= cut:
+            n += 1
+        if n == 0:
+            return
+        del steps[:n]
+        self._dirty = max(1, self._dirty - n)
+        t0 = steps[0].t
+        m = bisect_right(self._fix_t, t0)
+        for r in self._fix_recs[:m]:
+            self._archive(r.fix, r.outcome)
+            self._seen.discard((r.fix.source, "seq", r.fix.seq))
+            self._seen.discard((r.fix.source, "t", r.fix.t_ns))
+        del self._fix_t[:m], self._fix_keys[:m], self._fix_recs[:m]
+
+    def _archive(self, fix: PoseFix, outcome: FixOutcome):
+        self._archived[outcome.value] += 1
+        d = self._archived_src.setdefault(fix.source, count_outcomes([]))
+        d[outcome.value] += 1
+
+    def _count_now(self, fix: PoseFix, outcome: FixOutcome) -> FixOutcome:
+        self._archive(fix, outcome)
+        return outcome
+
+    # ------------------------------------------------------------------ propagation
+    def _advance(self, x, P, g, t_from: int, u, t_to: int, record: bool):
+        """From the state at t_from to t_to, applying every buffered fix in (t_from, t_to]."""
+        a = u[1] if u is not None else 0.0
+        lo = bisect_right(self._fix_t, t_from)
+        hi = bisect_right(self._fix_t, t_to)
+        t = t_from
+        for j in range(lo, hi):
+            rec = self._fix_recs[j]
+            tf = rec.fix.t_ns
+            xf, Pf = self._predict(x, P, (tf - t) * 1e-9, a) if tf > t else (x, P)
+            xu, Pu, g, outcome, d2 = self._apply_fix(xf, Pf, g, rec.fix, rec.arrival_ns)
+            if outcome.applied:  # split the interval at the fix; a refused fix leaves it whole
+                x, P, t = xu, Pu, tf
+            if record:
+                rec.outcome, rec.d2 = outcome, d2
+        if t_to > t:
+            x, P = self._predict(x, P, (t_to - t) * 1e-9, a)
+        return x, P, g
+
+    def _predict(self, x, P, dt: float, a: float):
+        th, v, w = x[IYAW], x[IV], x[IW]
+        thm = th + 0.5 * w * dt
+        c, s = math.cos(thm), math.sin(thm)
+        d = v * dt + 0.5 * a * dt * dt
+        xn = x.copy()
+        xn[IX] += d * c
+        xn[IY] += d * s
+        xn[IYAW] = wrap(th + w * dt)
+        xn[IV] = v + a * dt
+        F = _EYE.copy()
+        F[IX, IYAW] = -d * s
+        F[IX, IV] = dt * c
+        F[IX, IW] = -d * s * 0.5 * dt
+        F[IY, IYAW] = d * c
+        F[IY, IV] = dt * s
+        F[IY, IW] = d * c * 0.5 * dt
+        F[IYAW, IW] = dt
+        Pn = F @ P @ F.T
+        Pn[IX, IX] += self._q_pos * dt
+        Pn[IY, IY] += self._q_pos * dt
+        Pn[IYAW, IYAW] += self._q_yaw * dt
+        Pn[IV, IV] += self._q_v * dt
+        Pn[IB, IB] += self._q_b * dt
+        Pn[IK, IK] += self._q_k * dt
+        return xn, Pn
+
+    def _yaw_rate_noise(self, P, dt: float):
+        """The yaw rate's random step w (variance yaw_accel_density² * dt) over one interval of
+        length dt between IMU samples, entering yaw as w * dt / 2: with the gyro update that follows,
+        yaw is integrated with the trapezoid rule. Added once per interval (fixes inside an interval
+        see yaw_k + yaw_rate_k * tau), so splitting an interval at a fix changes nothing else."""
+        if dt <= 0:
+            return P
+        qw = self._q_a * dt
+        P = P.copy()
+        P[IYAW, IYAW] += qw * dt * dt / 4
+        P[IYAW, IW] += qw * dt / 2
+        P[IW, IYAW] += qw * dt / 2
+        P[IW, IW] += qw
+        return P
+
+    def _imu_update(self, x, P, u):
+        if u is None:
+            return x, P
+        gyro, _, wheel = u
+        if wheel is None:
+            H = np.zeros((1, NX))
+            H[0, IW] = H[0, IB] = 1.0
+            nu = np.array([gyro - x[IW] - x[IB]])
+            R = np.array([[self._r_g]])
+        else:
+            H = np.zeros((2, NX))
+            H[0, IW] = H[0, IB] = 1.0
+            H[1, IV] = 1.0 + x[IK]
+            H[1, IK] = x[IV]
+            nu = np.array([gyro - x[IW] - x[IB], wheel - (1.0 + x[IK]) * x[IV]])
+            R = np.diag([self._r_g, self._r_w])
+        return self._kalman(x, P, H, nu, R)
+
+    @staticmethod
+    def _kalman(x, P, H, nu, R):
+        PHt = P @ H.T
+        S = H @ PHt + R
+        K = np.linalg.solve(S, PHt.T).T
+        xn = x + K @ nu
+        xn[IYAW] = wrap(xn[IYAW])
+        A = _EYE - K @ H
+        Pn = A @ P @ A.T + K @ R @ K.T
+        return xn, 0.5 * (Pn + Pn.T)
+
+    def _pose_update(self, x, P, fix: PoseFix, nu):
+        H = np.zeros((3, NX))
+        H[0, IX] = H[1, IY] = H[2, IYAW] = 1.0
+        return self._kalman(x, P, H, nu, fix.cov)
+
+    # ------------------------------------------------------------------ gating
+    def _apply_fix(self, x, P, g: _Gate, fix: PoseFix, arrival_ns: int | None):
+        """Gate one fix against the state at its capture time; returns (x, P, gate, outcome, d2)."""
+        delay = None if arrival_ns is None else arrival_ns - fix.t_ns
+        applied = _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source)
+        nu = np.array([fix.x - x[IX], fix.y - x[IY], wrap(fix.yaw - x[IYAW])])
+        P3 = P[:3, :3]
+        R = fix.cov
+        if self._gate_thr == math.inf:
+            x, P = self._pose_update(x, P, fix, nu)
+            return x, P, applied, FixOutcome.ACCEPTED, float("nan")
+        if g.mode == ACQUIRING:
+            S = P3 + R
+            d2 = float(nu @ np.linalg.solve(S, nu))
+            if d2 > self._gate_thr:
+                return x, P, g._replace(consecutive=g.consecutive + 1), FixOutcome.REJECTED_GATE, d2
+            cand = _Cand(fix.t_ns, fix.source, nu, R, np.diag(P3).copy())
+            cands = self._window(g.cands, fix.t_ns) + (cand,)
+            if self._consensus(cands, self.cfg.acquire_min_fixes, self.cfg.acquire_min_sources):
+                x, P = self._pose_update(x, P, fix, nu)
+                return x, P, applied, FixOutcome.ACCEPTED, d2
+            return x, P, g._replace(cands=cands), FixOutcome.UNCONFIRMED, d2
+        # tracking: own pose covariance capped inside S
+        sd = np.sqrt(np.maximum(np.diag(P3), 0.0))
+        f = np.minimum(1.0, self._cap / np.maximum(sd, 1e-300))
+        S = P3 * np.outer(f, f) + R
+        d2 = float(nu @ np.linalg.solve(S, nu))
+        if d2 <= self._gate_thr:
+            x, P = self._pose_update(x, P, fix, nu)
+            return x, P, applied, FixOutcome.ACCEPTED, d2
+        cand = _Cand(fix.t_ns, fix.source, nu, R, np.diag(P3).copy())
+        cands = self._window(g.cands, fix.t_ns) + (cand,)
+        starving = g.last_accept_ns is None or \
+            fix.t_ns - g.last_accept_ns >= int(self.cfg.reacquire_after_s * 1e9)
+        if starving and self._consensus(cands, self.cfg.reacquire_min_fixes, self.cfg.reacquire_min_sources):
+            P = P.copy()
+            P[:3, :3] += np.diag(nu * nu)
+            x, P = self._pose_update(x, P, fix, nu)
+            return x, P, applied, FixOutcome.REACQUIRED, d2
+        return x, P, g._replace(consecutive=g.consecutive + 1, cands=cands), FixOutcome.REJECTED_GATE, d2
+
+    def _window(self, cands: tuple, t_ns: int) -> tuple:
+        cut = t_ns - int(self.cfg.reacquire_window_s * 1e9)
+        return tuple(c for c in cands if c.t_ns >= cut)
+
+    def _agree(self, a: _Cand, b: _Cand) -> bool:
+        """Two refused fixes tell the same story: equal innovations within fix noise, the filter's
+        drift between their times and `consensus_sigma` (chi-square, `consensus_probability`)."""
+        d = a.nu - b.nu
+        d[2] = wrap(d[2])
+        C = a.R + b.R + np.diag(self._cons_var + np.abs(a.p_diag - b.p_diag))
+        return float(d @ np.linalg.solve(C, d)) <= self._cons_thr
+
+    def _consensus(self, cands: tuple, min_fixes: int, min_sources: int) -> bool:
+        """Is the newest candidate part of a group of >= min_fixes mutually agreeing candidates from
+        >= min_sources sources? (Greedy clique: candidates agreeing with the newest, nearest first,
+        each kept only if it agrees with every one kept before.)"""
+        if len(cands) < min_fixes:
+            return False
+        new = cands[-1]
+        near = [c for c in cands[:-1] if self._agree(new, c)]
+        if len(near) + 1 < min_fixes:
+            return False
+        near.sort(key=lambda c: float(np.sum((c.nu - new.nu) ** 2)))
+        group = [new]
+        for c in near:
+            if all(self._agree(c, m) for m in group[1:]):
+                group.append(c)
+        return len(group) >= min_fixes and len({c.source for c in group}) >= min_sources
+
+    # ------------------------------------------------------------------ output
+    def _fused(self, t_ns: int, x, P, g: _Gate, extrap_ns: int) -> FusedPose:
+        c = self.cfg
+        since = math.inf if g.last_accept_ns is None else (t_ns - g.last_accept_ns) * 1e-9
+        pos_sigma = float(math.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0)))
+        yaw_sigma = float(math.sqrt(max(P[IYAW, IYAW], 0.0)))
+        if g.mode == ACQUIRING:
+            status = "acquiring"
+        elif since > c.lost_after_s or pos_sigma > c.lost_pos_sigma:
+            status = "lost"
+        elif since > c.degraded_after_s or pos_sigma > c.degraded_pos_sigma:
+            status = "degraded"
+        else:
+            status = "ok"
+        rejected = self._archived[FixOutcome.REJECTED_GATE.value] + \
+            sum(1 for r in self._fix_recs if r.outcome is FixOutcome.REJECTED_GATE)
+        accepted = sum(self._archived[o.value] for o in FixOutcome if o.applied) + \
+            sum(1 for r in self._fix_recs if r.outcome.applied)
+        delay = math.nan if g.last_delay_ns is None else g.last_delay_ns * 1e-9
+        rx = math.nan if self._last_rx_delay_ns is None else self._last_rx_delay_ns * 1e-9
+        health = Health(status, since, delay, g.last_source, rx, rejected, g.consecutive, accepted,
+                        pos_sigma, yaw_sigma, extrap_ns * 1e-9)
+        return FusedPose(t_ns, float(x[IX]), float(x[IY]), float(x[IYAW]), float(x[IV]), float(x[IW]),
+                         float(x[IB]), float(x[IK]), P[:3, :3].copy(), P.copy(), health)
+
+
+class _StepTimes:
+    """A read-only sequence view of step times, for bisect."""
+    __slots__ = ("_s",)
+
+    def __init__(self, steps):
+        self._s = steps
+
+    def __len__(self):
+        return len(self._s)
+
+    def __getitem__(self, i):
+        return self._s[i].t
+
+
+__all__ = ["BusFilter", "FilterConfig", "FusedPose", "Health", "PoseFix", "FixOutcome", "STATE_NAMES", "wrap"]

@@ -1,0 +1,52 @@
+"""`toptag` command line: one entry point dispatching to each command's own module.
+
+Modules are imported only for the command that runs, so `toptag locate` never loads Zenoh and a
+service never loads the study code."""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+# command words -> "module:function"; each function takes argv (list[str]) and returns an exit code.
+COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
+    ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
+    ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: toptag <command> [options]   (toptag <command> --help for its options)", "", "commands:"]
+    for words, (_, text) in COMMANDS.items():
+        lines.append(f"  {' '.join(words):<16} {text}")
+    return "\n".join(lines)
+
+
+def dispatch(argv: list[str]) -> int:
+    for n in (2, 1):
+        words = tuple(argv[:n])
+        if words in COMMANDS:
+            target = COMMANDS[words][0]
+            module, func = target.split(":")
+            return int(getattr(importlib.import_module(module), func)(argv[n:]) or 0)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    print(f"toptag: unknown command {' '.join(argv[:2])!r}\n{_usage()}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> None:
+    try:
+        code = dispatch(sys.argv[1:] if argv is None else argv)
+    except KeyboardInterrupt:
+        code = 130
+    except SystemExit as e:  # argparse's --help and usage errors
+        code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+        if isinstance(e.code, str):
+            print(e.code, file=sys.stderr)
+    # pupil-apriltags' Detector.__del__ may crash during interpreter teardown: everything has been
+    # printed, so flush and leave without running finalisers.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)

@@ -1,0 +1,1 @@
+"""Studies behind `toptag eval ...`: each module has run(...) -> dict and main(argv) -> int."""
