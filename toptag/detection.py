@@ -5,6 +5,7 @@ OpenCV's convention ((0, 0) at its centre) and the camera's ideal (undistorted) 
 """
 from __future__ import annotations
 
+import atexit
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -53,12 +54,14 @@ class RawDetection:
 
 
 class TagDetector:
-    """One pupil-apriltags detector per family set, kept alive for the life of the process.
+    """One pupil-apriltags detector per family set.
 
-    pupil-apriltags' `Detector.__del__` can crash at interpreter exit, so callers should keep the
-    instance for the whole run (CLIs leave through `os._exit` after flushing)."""
+    pupil-apriltags 1.0.4's `Detector.__del__` frees the tag families before the detector that still
+    reads them (pupil-labs/apriltags PR #65): a use-after-free that aborts the interpreter at exit now
+    and then. Every TagDetector is therefore kept alive and released in the right order by `close()`,
+    which an atexit hook calls for those still open."""
 
-    _keepalive: list = []
+    _alive: list["TagDetector"] = []
 
     def __init__(self, families=("tag36h11",), settings: DetectorSettings | None = None):
         from pupil_apriltags import Detector  # heavy import; only where detection happens
@@ -72,13 +75,36 @@ class TagDetector:
         # pupil-apriltags 1.0.4 passes decode_sharpening through int(), turning 0.25 into 0: set it as the
         # C library expects (a double).
         self._detector.tag_detector_ptr.contents.decode_sharpening = float(s.decode_sharpening)
-        TagDetector._keepalive.append(self._detector)
+        TagDetector._alive.append(self)
+
+    def close(self) -> None:
+        """Free the C detector, then its families; afterwards pupil's __del__ has nothing to free."""
+        d = self._detector
+        if getattr(d, "tag_detector_ptr", None) is None:
+            return
+        d.libc.apriltag_detector_destroy.restype = None
+        d.libc.apriltag_detector_destroy(d.tag_detector_ptr)
+        for family, tf in d.tag_families.items():
+            destroy = getattr(d.libc, f"{family}_destroy")
+            destroy.restype = None
+            destroy(tf)
+        d.tag_detector_ptr = None
+        d.tag_families = {}
+        if self in TagDetector._alive:
+            TagDetector._alive.remove(self)
+
+    @classmethod
+    def close_all(cls) -> None:
+        for det in list(cls._alive):
+            det.close()
 
     def detect_raw(self, gray: np.ndarray, offset=(0, 0)) -> list[RawDetection]:
         """Every tag of the detector's families in `gray` (uint8, 2-D); `offset` is the (x, y) of
         gray's first pixel in the full frame when gray is a crop."""
         if gray.dtype != np.uint8 or gray.ndim != 2:
             raise ValueError("detector input must be a 2-D uint8 image")
+        if self._detector.tag_detector_ptr is None:
+            raise RuntimeError("detector was closed")
         img = np.ascontiguousarray(gray)
         shift = np.array([offset[0] + PUPIL_TO_OPENCV, offset[1] + PUPIL_TO_OPENCV])
         out = []
@@ -123,3 +149,6 @@ def detect_vehicle_tags(detector: TagDetector, gray: np.ndarray, camera: Camera,
                         vehicles: list[Vehicle]) -> dict[str, list[TagObservation]]:
     """Full-frame detection of the announced vehicles' tags in one camera image."""
     return assign_to_vehicles(detector.detect_raw(gray), camera, vehicles)
+
+
+atexit.register(TagDetector.close_all)

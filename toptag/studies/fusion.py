@@ -277,7 +277,7 @@ def _summarise(traces: list[RunTrace], inputs, settle_s: float) -> dict:
     from scipy.stats import chi2
 
     t0_ns = None
-    fpos, npos, dpos, fyaw, nyaw, nees_rows, fmax = [], [], [], [], [], [], []
+    fpos, npos, dpos, fyaw, nyaw, nees_rows = [], [], [], [], [], []
     counters: dict[str, int] = {}
     delays = []
     for tr, (imu, fixes, _) in zip(traces, inputs):

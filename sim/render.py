@@ -1,0 +1,541 @@
+"""Gray-level RSU images of vehicles with roof tags at SPEC's intersection.
+
+`render(camera, vehicles, occluders, model, rng)` paints, per camera:
+- the static background (sim.raster: ground texture, lane marks; cached per camera, already blurred);
+- every vehicle / occluder as a box layer (sides and roof flat-shaded by a fixed sun, roof tags with the
+  official pattern and white border exactly where `Vehicle.tag_corners` puts them), in occlusion order
+  (pairwise separating planes of the ground footprints, which is exact for disjoint upright boxes);
+- each layer is evaluated per pixel by inverse mapping (pixel -> exact undistorted ray -> face / tag
+  plane -> cell), and re-evaluated with `model.supersample`² samples only at pixels whose footprint
+  crosses an edge (box filter: exact coverage up to the sample count);
+- moving layers are blurred along their image-space motion during the exposure (symmetric kernel: the
+  rendered pose is the mid-exposure pose), then composited over what is behind them;
+- then the image model: Gaussian blur, gain, sensor noise, JPEG (sim.image_model).
+Only the image region that vehicles touch is recomputed per frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from sim.image_model import ImageModel
+from sim.patterns import grid_size, tag_cells
+from sim.raster import CameraRaster, raster_for
+from toptag.camera import Camera
+from toptag.geometry import rot_z, vehicle_to_world
+from toptag.vehicle import Vehicle
+
+SUN = np.array([np.cos(np.deg2rad(50)) * np.cos(np.deg2rad(200)),
+                np.cos(np.deg2rad(50)) * np.sin(np.deg2rad(200)), np.sin(np.deg2rad(50))])
+AMBIENT = 0.45
+ROOF, FRONT, REAR, LEFT, RIGHT = 5, 1, 2, 3, 4  # layer labels (0 = empty)
+
+
+# ---- scene description --------------------------------------------------------------------------
+@dataclass
+class PlacedVehicle:
+    """A vehicle with roof tags in the scene. `z` is the actual roof (tag plane) height, default
+    vehicle.height (differs when the body bounces); speed (m/s, along vehicle +x) and yaw_rate (rad/s)
+    drive the motion blur; colour is the body paint grey level."""
+
+    vehicle: Vehicle
+    x: float
+    y: float
+    yaw: float
+    z: float | None = None
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+    color: float = 170.0
+
+    @property
+    def roof_z(self) -> float:
+        return float(self.vehicle.height if self.z is None else self.z)
+
+    @property
+    def length(self) -> float:
+        return self.vehicle.length
+
+    @property
+    def width(self) -> float:
+        return self.vehicle.width
+
+    def tag_corners_world(self, tag_id: int) -> np.ndarray:
+        """(4, 3) world corners of one tag, detector order."""
+        return vehicle_to_world(self.vehicle.tag_corners(tag_id), self.x, self.y, self.yaw, self.roof_z)
+
+
+@dataclass
+class Occluder:
+    """A tagless box standing on the ground (truck, van, another bus without tags)."""
+
+    length: float
+    width: float
+    height: float
+    x: float
+    y: float
+    yaw: float = 0.0
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+    color: float = 120.0
+
+    @property
+    def roof_z(self) -> float:
+        return float(self.height)
+
+
+# ---- layers -------------------------------------------------------------------------------------
+@dataclass
+class _Tag:
+    H: np.ndarray  # (3, 3): normalized image coords -> homogeneous (row, col) in cells
+    levels: np.ndarray  # (N, N) float32 grey levels
+    n: int
+    plate_world: np.ndarray  # (4, 3)
+
+
+@dataclass
+class _Box:
+    length: float
+    width: float
+    height: float
+    x: float
+    y: float
+    yaw: float
+    speed: float
+    yaw_rate: float
+    color: float
+    tags: list = field(default_factory=list)
+    family: str = ""
+    tag_ids: tuple = ()
+
+    def footprint(self) -> np.ndarray:
+        L, W = self.length / 2, self.width / 2
+        local = np.array([[L, W], [L, -W], [-L, -W], [-L, W]])
+        c, s = np.cos(self.yaw), np.sin(self.yaw)
+        return local @ np.array([[c, s], [-s, c]]) + [self.x, self.y]
+
+
+def _as_box(obj) -> tuple[_Box, PlacedVehicle | None]:
+    if isinstance(obj, PlacedVehicle):
+        v = obj.vehicle
+        return _Box(v.length, v.width, obj.roof_z, obj.x, obj.y, obj.yaw, obj.speed, obj.yaw_rate, obj.color,
+                    family=v.family, tag_ids=tuple(v.tag_ids)), obj
+    if isinstance(obj, Occluder):
+        return _Box(obj.length, obj.width, obj.height, obj.x, obj.y, obj.yaw, obj.speed, obj.yaw_rate,
+                    obj.color), None
+    raise TypeError(f"not a scene object: {type(obj).__name__}")
+
+
+def _tag_layers(pv: PlacedVehicle, camera: Camera, model: ImageModel) -> list[_Tag]:
+    v = pv.vehicle
+    n = grid_size(v.family)
+    Rt = camera.R.T
+    C = camera.center
+    zr = pv.roof_z
+    # Normalized (xn, yn, 1) -> homogeneous world (X, Y, 1) on the roof plane.
+    Hp = np.vstack([C[0] * Rt[2] + (zr - C[2]) * Rt[0], C[1] * Rt[2] + (zr - C[2]) * Rt[1], Rt[2]])
+    out = []
+    for tid, spec in v.tags.items():
+        cell_side = spec.size / (n - 2)
+        cell_up = spec.extent_up / (n - 2)
+        half_side, half_up = n / 2 * cell_side, n / 2 * cell_up
+        # world XY -> vehicle -> tag frame (up, left) -> (row, col) of the printed grid.
+        to_vehicle = np.eye(3)
+        to_vehicle[:2, :2] = rot_z(-pv.yaw)[:2, :2]
+        to_vehicle[:2, 2] = -to_vehicle[:2, :2] @ [pv.x, pv.y]
+        to_tag = np.eye(3)
+        to_tag[:2, :2] = rot_z(-spec.yaw)[:2, :2]
+        to_tag[:2, 2] = -to_tag[:2, :2] @ np.asarray(spec.center)
+        to_grid = np.array([[-1.0 / cell_up, 0.0, half_up / cell_up],
+                            [0.0, -1.0 / cell_side, half_side / cell_side],
+                            [0.0, 0.0, 1.0]])
+        H = to_grid @ to_tag @ to_vehicle @ Hp
+        cells = tag_cells(v.family, tid)
+        levels = np.where(cells > 127, model.tag_white, model.tag_black).astype(np.float32)
+        plate_local = np.array([[half_up, half_side], [half_up, -half_side], [-half_up, -half_side],
+                                [-half_up, half_side]])
+        c, s = np.cos(spec.yaw), np.sin(spec.yaw)
+        plate_xy = plate_local @ np.array([[c, s], [-s, c]]) + np.asarray(spec.center)
+        plate = vehicle_to_world(np.column_stack([plate_xy, np.zeros(4)]), pv.x, pv.y, pv.yaw, zr)
+        out.append(_Tag(H, levels, n, plate))
+    return out
+
+
+def _face_polygons(box: _Box, cam_center: np.ndarray):
+    """Visible faces: list of (label, world polygon (4,3), world normal)."""
+    L, W, Hh = box.length / 2, box.width / 2, box.height
+    Rz = rot_z(box.yaw)
+    o = Rz.T @ (cam_center - [box.x, box.y, 0.0])
+    faces = []
+    if o[2] > Hh:
+        faces.append((ROOF, [[L, W, Hh], [L, -W, Hh], [-L, -W, Hh], [-L, W, Hh]], [0, 0, 1]))
+    if o[0] > L:
+        faces.append((FRONT, [[L, W, 0], [L, -W, 0], [L, -W, Hh], [L, W, Hh]], [1, 0, 0]))
+    if o[0] < -L:
+        faces.append((REAR, [[-L, W, 0], [-L, -W, 0], [-L, -W, Hh], [-L, W, Hh]], [-1, 0, 0]))
+    if o[1] > W:
+        faces.append((LEFT, [[L, W, 0], [-L, W, 0], [-L, W, Hh], [L, W, Hh]], [0, 1, 0]))
+    if o[1] < -W:
+        faces.append((RIGHT, [[L, -W, 0], [-L, -W, 0], [-L, -W, Hh], [L, -W, Hh]], [0, -1, 0]))
+    out = []
+    for label, poly, normal in faces:
+        out.append((label, np.asarray(poly, float) @ Rz.T + [box.x, box.y, 0.0], Rz @ np.asarray(normal, float)))
+    return out
+
+
+def _face_colors(box: _Box) -> np.ndarray:
+    Rz = rot_z(box.yaw)
+    lut = np.zeros(6, np.float32)
+    for label, n in ((ROOF, [0, 0, 1]), (FRONT, [1, 0, 0]), (REAR, [-1, 0, 0]), (LEFT, [0, 1, 0]),
+                     (RIGHT, [0, -1, 0])):
+        lut[label] = box.color * (AMBIENT + (1 - AMBIENT) * max(0.0, float(Rz @ np.asarray(n, float) @ SUN)))
+    return lut
+
+
+def _tag_values(tags: list[_Tag], xn, yn, base):
+    """Colour of roof points seen along normalized rays (xn, yn): tag level inside a plate, else base."""
+    out = np.array(base, dtype=np.float32, copy=True)
+    for tg in tags:
+        H = tg.H
+        w = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
+        r = (H[0, 0] * xn + H[0, 1] * yn + H[0, 2]) / w
+        c = (H[1, 0] * xn + H[1, 1] * yn + H[1, 2]) / w
+        inside = (r >= 0) & (r < tg.n) & (c >= 0) & (c < tg.n)
+        ri = np.clip(r, 0, tg.n - 1).astype(np.intp)
+        ci = np.clip(c, 0, tg.n - 1).astype(np.intp)
+        out = np.where(inside, tg.levels[ri, ci], out)
+    return out
+
+
+def _ray_box(box: _Box, camera: Camera, xn, yn, colors, tags):
+    """Exact colour and hit mask of rays (normalized coords, any shape) against the box."""
+    Rz = rot_z(box.yaw)
+    M = Rz.T @ camera.R.T
+    o = Rz.T @ (camera.center - [box.x, box.y, 0.0])
+    lo = np.array([-box.length / 2, -box.width / 2, 0.0])
+    hi = np.array([box.length / 2, box.width / 2, box.height])
+    t_near = np.full(xn.shape, -np.inf)
+    t_far = np.full(xn.shape, np.inf)
+    label = np.zeros(xn.shape, np.intp)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # (face entered when the ray runs toward -k, face entered when it runs toward +k)
+        for k, (neg_face, pos_face) in enumerate(((FRONT, REAR), (LEFT, RIGHT), (ROOF, 0))):
+            d = M[k, 0] * xn + M[k, 1] * yn + M[k, 2]
+            t1 = (lo[k] - o[k]) / d
+            t2 = (hi[k] - o[k]) / d
+            tmin = np.minimum(t1, t2)
+            tmax = np.maximum(t1, t2)
+            better = tmin > t_near
+            # Entering through the low face when the ray goes +k, the high face when it goes -k.
+            label = np.where(better, np.where(d < 0, neg_face, pos_face), label)
+            t_near = np.where(better, tmin, t_near)
+            t_far = np.minimum(t_far, tmax)
+    hit = (t_near <= t_far) & (t_near > 0) & (label > 0)
+    col = colors[np.where(hit, label, 0)]
+    if tags:
+        roof = np.nonzero(hit & (label == ROOF))
+        if len(roof[0]):
+            col[roof] = _tag_values(tags, xn[roof], yn[roof], col[roof])
+    return col, hit
+
+
+# ---- supersampling ------------------------------------------------------------------------------
+_PATTERNS: dict[int, np.ndarray] = {}
+
+
+def sample_offsets(s: int) -> np.ndarray:
+    """(s², 2) sub-pixel offsets in [-0.5, 0.5): a rank-1 lattice (all x distinct, all y distinct,
+    well spread), chosen for the largest minimum toroidal distance."""
+    if s not in _PATTERNS:
+        n = s * s
+        if n == 1:
+            _PATTERNS[s] = np.zeros((1, 2))
+        else:
+            k = np.arange(n)
+            best, best_g = -1.0, 1
+            for g in range(1, n):
+                if np.gcd(g, n) != 1:
+                    continue
+                p = np.column_stack([k / n, (k * g % n) / n])
+                d = np.abs(p[:, None] - p[None])
+                d = np.minimum(d, 1 - d)
+                dist = np.sqrt((d ** 2).sum(-1)) + np.eye(n) * 9
+                if dist.min() > best + 1e-12:
+                    best, best_g = dist.min(), g
+            _PATTERNS[s] = np.column_stack([(k + 0.5) / n, ((k * best_g % n) + 0.5) / n]) - 0.5
+    return _PATTERNS[s]
+
+
+def _subsample_rays(rast: CameraRaster, ys: np.ndarray, xs: np.ndarray, offsets: np.ndarray):
+    """Normalized coords at sub-pixel offsets of pixels (ys, xs): first order in the cached exact map
+    (the lens map is smooth: the second-order error over half a pixel is ~1e-5 px)."""
+    H, W = rast.height, rast.width
+    xm, xp = np.maximum(xs - 1, 0), np.minimum(xs + 1, W - 1)
+    ym, yp = np.maximum(ys - 1, 0), np.minimum(ys + 1, H - 1)
+    X, Y = rast.xn, rast.yn
+    sx = (xp - xm).astype(np.float64)
+    sy = (yp - ym).astype(np.float64)
+    x0 = X[ys, xs].astype(np.float64)
+    y0 = Y[ys, xs].astype(np.float64)
+    xu = (X[ys, xp] - X[ys, xm]) / sx
+    yu = (Y[ys, xp] - Y[ys, xm]) / sx
+    xv = (X[yp, xs] - X[ym, xs]) / sy
+    yv = (Y[yp, xs] - Y[ym, xs]) / sy
+    ou, ov = offsets[:, 0][None, :], offsets[:, 1][None, :]
+    xn = x0[:, None] + xu[:, None] * ou + xv[:, None] * ov
+    yn = y0[:, None] + yu[:, None] * ou + yv[:, None] * ov
+    return xn, yn
+
+
+# ---- one layer ----------------------------------------------------------------------------------
+@dataclass
+class _Layer:
+    x0: int
+    y0: int
+    alpha: np.ndarray  # (h, w) float32 coverage
+    premult: np.ndarray  # (h, w) float32 colour * coverage
+
+
+def _motion_kernel(rast: CameraRaster, box: _Box, exposure: float) -> np.ndarray | None:
+    if exposure <= 0 or (box.speed == 0 and box.yaw_rate == 0):
+        return None
+    pts = []
+    for dt in (-exposure / 2, exposure / 2):
+        mid = box.yaw + box.yaw_rate * dt / 2  # mean heading between mid-exposure and dt
+        pts.append([box.x + box.speed * dt * np.cos(mid), box.y + box.speed * dt * np.sin(mid), box.height])
+    p = rast.camera.project(np.array(pts))
+    delta = p[1] - p[0]
+    length = float(np.hypot(*delta))
+    if not np.isfinite(length) or length < 0.25:
+        return None
+    r = int(np.ceil(length / 2)) + 1
+    k = np.zeros((2 * r + 1, 2 * r + 1), np.float64)
+    m = max(8, int(np.ceil(length * 8)))
+    s = (np.arange(m) + 0.5) / m - 0.5  # symmetric about 0: no mean shift
+    px = r + s * delta[0]
+    py = r + s * delta[1]
+    ix, iy = np.floor(px).astype(int), np.floor(py).astype(int)
+    fx, fy = px - ix, py - iy
+    np.add.at(k, (iy, ix), (1 - fx) * (1 - fy))
+    np.add.at(k, (iy, ix + 1), fx * (1 - fy))
+    np.add.at(k, (iy + 1, ix), (1 - fx) * fy)
+    np.add.at(k, (iy + 1, ix + 1), fx * fy)
+    return (k / k.sum()).astype(np.float32)
+
+
+def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model: ImageModel) -> _Layer | None:
+    camera = rast.camera
+    faces = _face_polygons(box, rast.center)
+    polys = []
+    for label, poly_w, _n in faces:
+        px = rast.project_polygon(poly_w)
+        if px is not None:
+            polys.append((label, px))
+    if not polys:
+        return None
+    kernel = _motion_kernel(rast, box, model.exposure)
+    pad = 3 + (kernel.shape[0] // 2 if kernel is not None else 0)
+    allpts = np.vstack([p for _, p in polys])
+    x0 = max(0, int(np.floor(allpts[:, 0].min())) - pad)
+    y0 = max(0, int(np.floor(allpts[:, 1].min())) - pad)
+    x1 = min(rast.width, int(np.ceil(allpts[:, 0].max())) + pad + 1)
+    y1 = min(rast.height, int(np.ceil(allpts[:, 1].max())) + pad + 1)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    h, w = y1 - y0, x1 - x0
+    # Labels are rasterised with a 2-pixel apron beyond the crop (and beyond the image), so that an
+    # edge just outside the frame still marks the border pixels it touches.
+    ap = 2
+    label_x = np.zeros((h + 2 * ap, w + 2 * ap), np.uint8)
+    outline = np.zeros_like(label_x)
+    for lab, px in polys:
+        pts = np.round((px - [x0 - ap, y0 - ap]) * 16).astype(np.int32)
+        cv2.fillPoly(label_x, [pts], int(lab), lineType=cv2.LINE_8, shift=4)
+        # Every projected edge is marked too: faces seen edge-on may be thinner than a pixel.
+        cv2.polylines(outline, [pts], True, 1, thickness=1, lineType=cv2.LINE_8, shift=4)
+    label = label_x[ap:ap + h, ap:ap + w]
+    colors = _face_colors(box)
+    color = colors[label]
+    tags = _tag_layers(pv, camera, model) if (pv is not None and any(l == ROOF for l, _ in polys)) else []
+
+    # Pixels whose footprint may straddle a face/silhouette edge: label changes, dilated by one.
+    diff = outline
+    dh = label_x[:, 1:] != label_x[:, :-1]
+    dv = label_x[1:, :] != label_x[:-1, :]
+    diff[:, 1:] |= dh
+    diff[:, :-1] |= dh
+    diff[1:, :] |= dv
+    diff[:-1, :] |= dv
+    band = cv2.dilate(diff, np.ones((3, 3), np.uint8))[ap:ap + h, ap:ap + w].astype(bool)
+
+    tag_edge = []  # per tag: mask of its cell-edge pixels in the crop
+    for tg in tags:
+        pp = rast.project_polygon(tg.plate_world)
+        if pp is None:
+            continue
+        tx0 = max(x0, int(np.floor(pp[:, 0].min())) - 2)
+        ty0 = max(y0, int(np.floor(pp[:, 1].min())) - 2)
+        tx1 = min(x1, int(np.ceil(pp[:, 0].max())) + 3)
+        ty1 = min(y1, int(np.ceil(pp[:, 1].max())) + 3)
+        if tx1 <= tx0 or ty1 <= ty0:
+            continue
+        xn = rast.xn[ty0:ty1, tx0:tx1].astype(np.float64)
+        yn = rast.yn[ty0:ty1, tx0:tx1].astype(np.float64)
+        H = tg.H
+        wgt = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
+        r = (H[0, 0] * xn + H[0, 1] * yn + H[0, 2]) / wgt
+        c = (H[1, 0] * xn + H[1, 1] * yn + H[1, 2]) / wgt
+        sl = (slice(ty0 - y0, ty1 - y0), slice(tx0 - x0, tx1 - x0))
+        roof = label[sl] == ROOF
+        n = tg.n
+        inside = (r >= 0) & (r < n) & (c >= 0) & (c < n)
+        ri = np.clip(r, 0, n - 1).astype(np.intp)
+        ci = np.clip(c, 0, n - 1).astype(np.intp)
+        sub = color[sl]
+        sub[roof & inside] = tg.levels[ri, ci][roof & inside]
+        # Footprint half-extent in cells (linearised pixel square), then the cell at its 4 corners.
+        if r.shape[0] > 1 and r.shape[1] > 1:
+            rv, ru = np.gradient(r)
+            cv_, cu = np.gradient(c)
+        else:
+            ru = rv = cu = cv_ = np.ones_like(r)
+        er = 0.5 * (np.abs(ru) + np.abs(rv)) * 1.02 + 1e-3
+        ec = 0.5 * (np.abs(cu) + np.abs(cv_)) * 1.02 + 1e-3
+        near = (r + er >= 0) & (r - er <= n) & (c + ec >= 0) & (c - ec <= n)
+
+        def cell(rr, cc):
+            ok = (rr >= 0) & (rr < n) & (cc >= 0) & (cc < n)
+            v = tg.levels[np.clip(rr, 0, n - 1).astype(np.intp), np.clip(cc, 0, n - 1).astype(np.intp)]
+            return np.where(ok, v, -1.0)
+
+        v00 = cell(r - er, c - ec)
+        edge = (v00 != cell(r - er, c + ec)) | (v00 != cell(r + er, c - ec)) | (v00 != cell(r + er, c + ec))
+        edge |= (er > 0.5) | (ec > 0.5)
+        mask = np.zeros((h, w), bool)
+        mask[sl] = edge & near & roof
+        tag_edge.append((tg, mask))
+
+    alpha = (label > 0).astype(np.float32)
+    premult = color * alpha
+    offs = sample_offsets(model.supersample)
+    if model.supersample > 1:
+        # Silhouette and face edges: full ray casting (box + tags) at every sample.
+        ys, xs = np.nonzero(band)
+        if len(ys):
+            sxn, syn = _subsample_rays(rast, ys + y0, xs + x0, offs)
+            col, hit = _ray_box(box, camera, sxn, syn, colors, tags)
+            a = hit.mean(axis=1)
+            alpha[ys, xs] = a
+            premult[ys, xs] = (col * hit).mean(axis=1)
+        # Tag cell edges inside the roof: the roof-plane homography of that tag suffices (of all
+        # tags where plates touch).
+        shared = np.sum([m for _, m in tag_edge], axis=0) > 1 if len(tag_edge) > 1 else None
+        groups = [([tg], m & ~shared if shared is not None else m) for tg, m in tag_edge]
+        if shared is not None:
+            groups.append((tags, shared))
+        for group, mask in groups:
+            ys, xs = np.nonzero(mask & ~band)
+            if len(ys):
+                sxn, syn = _subsample_rays(rast, ys + y0, xs + x0, offs)
+                base = np.full(sxn.shape, colors[ROOF], np.float32)
+                premult[ys, xs] = _tag_values(group, sxn, syn, base).mean(axis=1)
+    if kernel is not None:
+        alpha = cv2.filter2D(alpha, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+        premult = cv2.filter2D(premult, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+    return _Layer(x0, y0, alpha, premult)
+
+
+# ---- occlusion order ----------------------------------------------------------------------------
+def _in_front(a: _Box, b: _Box, eye_xy: np.ndarray) -> int:
+    """+1 if a may hide b (a nearer), -1 if b may hide a, 0 if unknown (footprints overlap).
+    For disjoint upright boxes a separating vertical plane exists; the one on the camera's side is
+    in front."""
+    fa, fb = a.footprint(), b.footprint()
+    for poly in (fa, fb):
+        for i in range(4):
+            e = poly[(i + 1) % 4] - poly[i]
+            axis = np.array([-e[1], e[0]])
+            pa, pb = fa @ axis, fb @ axis
+            pe = eye_xy @ axis
+            if pa.max() <= pb.min():
+                return 1 if pe <= pa.max() else (-1 if pe >= pb.min() else 0)
+            if pb.max() <= pa.min():
+                return 1 if pe >= pa.min() else (-1 if pe <= pb.max() else 0)
+    return 0
+
+
+def draw_order(boxes: list[_Box], eye: np.ndarray) -> list[int]:
+    """Indices far-to-near (painter's order)."""
+    n = len(boxes)
+    eye_xy = np.asarray(eye[:2], float)
+    dist = [float(np.min(np.linalg.norm(b.footprint() - eye_xy, axis=1))) for b in boxes]
+    behind = {i: set() for i in range(n)}  # i must be drawn after every j in behind[i]
+    for i in range(n):
+        for j in range(i + 1, n):
+            r = _in_front(boxes[i], boxes[j], eye_xy)
+            if r > 0:
+                behind[i].add(j)
+            elif r < 0:
+                behind[j].add(i)
+    order, done = [], set()
+    remaining = sorted(range(n), key=lambda i: -dist[i])
+    while remaining:
+        for i in remaining:
+            if behind[i] <= done:
+                break
+        else:  # cycle: fall back to distance
+            i = remaining[0]
+        order.append(i)
+        done.add(i)
+        remaining.remove(i)
+    return order
+
+
+# ---- frame --------------------------------------------------------------------------------------
+def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None = None,
+           rng: np.random.Generator | None = None) -> np.ndarray:
+    """One gray uint8 (H, W) frame of `camera` seeing `vehicles` (PlacedVehicle) and `occluders`
+    (Occluder or PlacedVehicle) under `model` (default ImageModel()). `rng` seeds the sensor noise."""
+    model = ImageModel() if model is None else model
+    rng = np.random.default_rng() if rng is None else rng
+    rast = raster_for(camera)
+    out = rast.finished_background(model.blur_sigma, model.gain).copy()
+    items = [_as_box(o) for o in list(vehicles) + list(occluders)]
+    layers = []
+    for i in draw_order([b for b, _ in items], rast.center):
+        layer = _render_layer(rast, items[i][0], items[i][1], model)
+        if layer is not None:
+            layers.append(layer)
+    if layers:
+        _composite(rast, layers, model, out)
+    if model.noise_sigma > 0:
+        cv2.setRNGSeed(int(rng.integers(1, 2 ** 31 - 1)))
+        cv2.randn(rast.noise, 0.0, float(model.noise_sigma))
+        cv2.add(out, rast.noise, dst=out, dtype=cv2.CV_8U)
+    if model.jpeg_quality > 0:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(model.jpeg_quality)])
+        out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    return out
+
+
+def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out: np.ndarray) -> None:
+    x0 = min(l.x0 for l in layers)
+    y0 = min(l.y0 for l in layers)
+    x1 = max(l.x0 + l.alpha.shape[1] for l in layers)
+    y1 = max(l.y0 + l.alpha.shape[0] for l in layers)
+    mb = int(np.ceil(4 * model.blur_sigma)) + 1 if model.blur_sigma > 0 else 0
+    # Paste region: the layers plus the blur reach; crop: plus the blur's input context.
+    px0, py0 = max(0, x0 - mb), max(0, y0 - mb)
+    px1, py1 = min(rast.width, x1 + mb), min(rast.height, y1 + mb)
+    cx0, cy0 = max(0, x0 - 2 * mb), max(0, y0 - 2 * mb)
+    cx1, cy1 = min(rast.width, x1 + 2 * mb), min(rast.height, y1 + 2 * mb)
+    F = rast.radiance[cy0:cy1, cx0:cx1].copy()
+    for l in layers:
+        h, w = l.alpha.shape
+        sl = (slice(l.y0 - cy0, l.y0 - cy0 + h), slice(l.x0 - cx0, l.x0 - cx0 + w))
+        F[sl] = F[sl] * (1.0 - l.alpha) + l.premult
+    if mb:
+        F = cv2.GaussianBlur(F, (0, 0), model.blur_sigma)
+    img = cv2.convertScaleAbs(F, alpha=model.gain)
+    out[py0:py1, px0:px1] = img[py0 - cy0:py1 - cy0, px0 - cx0:px1 - cx0]

@@ -1,0 +1,283 @@
+"""Renderer tests on real rendered images and the real AprilTag detector (no mocks)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sim import render as R
+from sim.image_model import ImageModel, perturb_camera
+from sim.patterns import grid_size, tag_cells
+from sim.raster import raster_for
+from sim.render import Occluder, PlacedVehicle, render
+from sim.scene import bundled_vehicle, rsu_camera
+from toptag.detection import TagDetector, detect_vehicle_tags
+
+TAGS = Path("/work/shared/tags")
+BARREL = [-0.25, 0.08, 0.0, 0.0, 0.0]
+
+
+@pytest.fixture(scope="module")
+def detector():
+    det = TagDetector()
+    yield det
+    det.close()
+
+
+def heading(cam):
+    return float(np.arctan2(cam.R[2, 1], cam.R[2, 0]))
+
+
+def place(cam, vehicle, dist, off=0.0, yaw=0.0, **kw):
+    c, a = cam.center, heading(cam) + off
+    return PlacedVehicle(vehicle, c[0] + dist * np.cos(a), c[1] + dist * np.sin(a), yaw, **kw)
+
+
+def corner_errors(det, img, cam, pv):
+    """Detected raw corners minus the projected true corners, per found tag id."""
+    obs = detect_vehicle_tags(det, img, cam, [pv.vehicle])[pv.vehicle.id]
+    return {o.tag_id: o.raw_corners - cam.project(pv.tag_corners_world(o.tag_id)) for o in obs}
+
+
+def rms(errs):
+    e = np.concatenate(list(errs)) if errs else np.zeros((1, 2))
+    return float(np.sqrt((e ** 2).sum(axis=1).mean()))
+
+
+# ---- patterns -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("tag_id", range(8))
+def test_pattern_equals_official_image(tag_id):
+    official = cv2.imread(str(TAGS / f"tag36_11_{tag_id:05d}.png"), cv2.IMREAD_UNCHANGED)
+    official = official[..., 0] if official.ndim == 3 else official
+    cells = tag_cells("tag36h11", tag_id)
+    assert cells.shape == (10, 10)
+    np.testing.assert_array_equal(cells, official)
+
+
+def test_other_families_have_border_and_white_frame():
+    for fam in ("tag25h9", "tag16h5"):
+        m = tag_cells(fam, 0)
+        n = grid_size(fam)
+        assert m.shape == (n, n)
+        assert np.all(m[0] == 255) and np.all(m[:, -1] == 255)
+        assert np.all(m[1, 1:-1] == 0) and np.all(m[1:-1, 1] == 0)
+    with pytest.raises(ValueError):
+        tag_cells("tag36h11", 100000)
+
+
+# ---- geometry of the painted tags ---------------------------------------------------------------
+def test_cells_painted_where_tag_corners_say():
+    """Independent of the detector: every cell centre, interpolated from Vehicle.tag_corners (printed
+    bottom-left, bottom-right, top-right, top-left), shows that cell's official value."""
+    cam = rsu_camera("sw")
+    bus = bundled_vehicle("bus_double")
+    model = ImageModel.ideal()
+    pv = place(cam, bus, 7.0, 0.1, yaw=2.4)
+    img = render(cam, [pv], model=model).astype(float)
+    for tid in bus.tag_ids:
+        bl, br, tr, tl = pv.tag_corners_world(tid)
+        cells = tag_cells(bus.family, tid)
+        n = cells.shape[0]
+        for r in range(n):
+            for c in range(n):
+                a, b = (c + 0.5 - 1) / (n - 2), (r + 0.5 - 1) / (n - 2)
+                p = tl + a * (tr - tl) + b * (bl - tl)
+                u, v = np.rint(cam.project(p[None])[0]).astype(int)
+                want = model.tag_white if cells[r, c] else model.tag_black
+                assert abs(img[v, u] - want) <= 1.0, (tid, r, c, img[v, u], want)
+
+
+@pytest.mark.parametrize("dist", [None, BARREL])
+def test_edge_supersampling_matches_brute_force(dist):
+    """Pixels not supersampled are exact: the layer equals a 12x12-sample ray cast of every pixel up to
+    the 16-sample quantisation, everywhere (silhouettes, faces, cells, image border)."""
+    cam = rsu_camera("sw", dist=dist)
+    rast = raster_for(cam)
+    bus = bundled_vehicle("bus_double")
+    model = ImageModel.ideal()
+    for d, off, yaw in ((6.0, 0.2, 0.7), (20.0, 0.2, 0.7), (9.0, -0.5, -2.0)):
+        pv = place(cam, bus, d, off, yaw=yaw, z=3.05)
+        box, _ = R._as_box(pv)
+        layer = R._render_layer(rast, box, pv, model)
+        h, w = layer.alpha.shape
+        ys, xs = np.mgrid[layer.y0:layer.y0 + h, layer.x0:layer.x0 + w]
+        sx, sy = R._subsample_rays(rast, ys.ravel(), xs.ravel(), R.sample_offsets(12))
+        col, hit = R._ray_box(box, cam, sx, sy, R._face_colors(box), R._tag_layers(pv, cam, model))
+        alpha = hit.mean(axis=1).reshape(h, w)
+        premult = (col * hit).mean(axis=1).reshape(h, w)
+        assert np.abs(alpha - layer.alpha).max() < 0.2
+        assert np.abs(premult - layer.premult).max() < 0.2 * 255
+        assert np.abs(premult - layer.premult).mean() < 0.5
+
+
+def test_frame_region_update_is_seamless():
+    """Only the vehicle region is recomputed per frame; the result equals compositing over the whole
+    radiance and blurring the whole frame."""
+    cam = rsu_camera("sw")
+    rast = raster_for(cam)
+    bus = bundled_vehicle("bus_double")
+    model = ImageModel(noise_sigma=0.0, jpeg_quality=0, exposure=0.0)
+    pv = place(cam, bus, 9.0, 0.1, yaw=1.0)
+    img = render(cam, [pv], model=model)
+    box, _ = R._as_box(pv)
+    layer = R._render_layer(rast, box, pv, model)
+    F = rast.radiance.copy()
+    h, w = layer.alpha.shape
+    sl = (slice(layer.y0, layer.y0 + h), slice(layer.x0, layer.x0 + w))
+    F[sl] = F[sl] * (1 - layer.alpha) + layer.premult
+    ref = cv2.convertScaleAbs(cv2.GaussianBlur(F, (0, 0), model.blur_sigma), alpha=model.gain)
+    assert np.abs(img.astype(int) - ref).max() <= 1
+
+
+# ---- detection of rendered buses ----------------------------------------------------------------
+LAYOUTS = ["bus_double", "bus_single", "bus_triple", "bus_long"]
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_detected_corners_match_projection(detector, layout):
+    cam = rsu_camera("sw")
+    bus = bundled_vehicle(layout)
+    rng = np.random.default_rng(1)
+    for model, limit in ((ImageModel.ideal(), 0.2), (ImageModel(), 0.5)):
+        errs = []
+        for yaw in np.linspace(-np.pi, np.pi, 4, endpoint=False) + 0.3:
+            pv = place(cam, bus, float(rng.uniform(8.0, 10.0)), float(rng.uniform(-0.2, 0.2)), yaw=float(yaw),
+                       z=bus.height + float(rng.uniform(-0.1, 0.1)))
+            found = corner_errors(detector, render(cam, [pv], model=model, rng=rng), cam, pv)
+            assert set(found) == set(bus.tag_ids), (model.describe(), yaw)
+            # Order: each detected corner is nearest to the same-index projected corner.
+            assert all(np.abs(e).max() < 1.0 for e in found.values())
+            errs += found.values()
+        print(f"{layout} {'ideal' if model.noise_sigma == 0 else 'default'}: corner RMS {rms(errs):.3f} px")
+        assert rms(errs) < limit
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_lens_distortion_rendered_exactly(detector, layout):
+    """Barrel distortion: undistorting the rendered image with the camera's model and detecting there
+    gives the ideal pinhole corners (the renderer honours `dist`); detecting on the raw distorted image
+    is limited by the detector's straight-edge fit, reported and bounded loosely."""
+    cam = rsu_camera("sw", dist=BARREL)
+    bus = bundled_vehicle(layout)
+    mx, my = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1)
+    rng = np.random.default_rng(2)
+    und, raw = [], []
+    for yaw in np.linspace(-np.pi, np.pi, 3, endpoint=False) + 0.2:
+        pv = place(cam, bus, float(rng.uniform(8.0, 10.0)), float(rng.uniform(-0.3, 0.3)), yaw=float(yaw))
+        img = render(cam, [pv], model=ImageModel.ideal(), rng=rng)
+        raw += corner_errors(detector, img, cam, pv).values()
+        flat = cv2.remap(img, mx, my, cv2.INTER_CUBIC)
+        obs = detect_vehicle_tags(detector, flat, cam, [bus])[bus.id]  # corners in ideal pixels
+        assert {o.tag_id for o in obs} == set(bus.tag_ids)
+        for o in obs:
+            und.append(o.raw_corners - cam.project(pv.tag_corners_world(o.tag_id), distort=False))
+    print(f"{layout} barrel: undistorted-image RMS {rms(und):.3f} px, raw distorted-image RMS {rms(raw):.3f} px")
+    assert rms(und) < 0.2
+    assert rms(raw) < 1.5
+
+
+# ---- occlusion ----------------------------------------------------------------------------------
+def test_truck_hides_the_near_tag(detector):
+    cam = rsu_camera("sw")
+    bus = bundled_vehicle("bus_double")  # tag 3 front (+x), tag 7 rear
+    a = heading(cam)
+    pv = place(cam, bus, 14.0, yaw=a)  # pointing away: tag 7 nearer the camera
+    u = np.array([np.cos(a), np.sin(a)])
+    c = cam.center[:2]
+    truck = Occluder(7.0, 2.5, 4.0, *(c + 9.0 * u), yaw=a + np.pi / 2)
+    model = ImageModel()
+    found = corner_errors(detector, render(cam, [pv], [truck], model=model, rng=np.random.default_rng(0)), cam, pv)
+    assert 3 in found and 7 not in found
+    assert rms([found[3]]) < 0.5
+    # The truck really covers tag 7's nearer corners (pixels there are the truck's, not the tag's).
+    img = render(cam, [pv], [truck], model=ImageModel.ideal())
+    near = cam.project(pv.tag_corners_world(7))[[0, 1]]  # printed bottom = rear = nearer edge
+    for uu, vv in np.rint(near).astype(int):
+        patch = img[vv - 2:vv + 3, uu - 2:uu + 3]
+        assert patch.std() < 2.0  # flat truck face, no tag edge
+    # The same truck behind the bus hides nothing: both tags are found (occlusion order is geometric).
+    far_truck = Occluder(7.0, 2.5, 4.0, *(c + 21.0 * u), yaw=a + np.pi / 2)
+    for order in ([pv, far_truck], [far_truck, pv]):
+        found = corner_errors(detector, render(cam, [o for o in order if isinstance(o, PlacedVehicle)],
+                                               [o for o in order if isinstance(o, Occluder)], model=model,
+                                               rng=np.random.default_rng(0)), cam, pv)
+        assert set(found) == {3, 7}
+
+
+def test_two_buses_and_occlusion_order(detector):
+    cam = rsu_camera("sw")
+    a = heading(cam)
+    b1, b2 = bundled_vehicle("bus_double"), bundled_vehicle("bus_second")
+    near = place(cam, b1, 9.0, off=0.35, yaw=a + np.pi / 2)
+    far = place(cam, b2, 15.0, off=-0.25, yaw=a + 0.3)
+    boxes = [R._as_box(far)[0], R._as_box(near)[0]]
+    assert R.draw_order(boxes, cam.center) == [0, 1]
+    assert R.draw_order(boxes[::-1], cam.center) == [1, 0]
+    img = render(cam, [near, far], rng=np.random.default_rng(6))
+    for pv in (near, far):
+        found = corner_errors(detector, img, cam, pv)
+        assert set(found) == set(pv.vehicle.tag_ids)
+        assert rms(found.values()) < 0.5
+
+
+# ---- motion blur, noise, JPEG -------------------------------------------------------------------
+def test_motion_blur_shifts_nothing_on_average(detector):
+    cam = rsu_camera("sw")
+    bus = bundled_vehicle("bus_double")
+    model = ImageModel(exposure=0.008)
+    rng = np.random.default_rng(3)
+    errs = []
+    for yaw in (0.0, 1.2, 2.5, -1.0):
+        pv = place(cam, bus, 9.0, 0.1, yaw=heading(cam) + yaw, speed=12.0, yaw_rate=0.2)
+        box, _ = R._as_box(pv)
+        k = R._motion_kernel(raster_for(cam), box, model.exposure)
+        assert k is not None and k.shape[0] >= 5  # a few pixels of smear
+        ys, xs = np.mgrid[:k.shape[0], :k.shape[1]]
+        c = k.shape[0] // 2
+        assert abs((k * xs).sum() - c) < 1e-6 and abs((k * ys).sum() - c) < 1e-6
+        moving = render(cam, [pv], model=model, rng=rng)
+        static = render(cam, [PlacedVehicle(bus, pv.x, pv.y, pv.yaw)], model=model, rng=rng)
+        assert np.abs(moving.astype(int) - static).max() > 40
+        found = corner_errors(detector, moving, cam, pv)
+        assert found
+        errs += found.values()
+    e = np.concatenate(errs)
+    print(f"motion blur 12 m/s x 8 ms: corner RMS {rms(errs):.3f} px, mean {e.mean(axis=0).round(3)}")
+    assert rms(errs) < 1.0
+    assert np.all(np.abs(e.mean(axis=0)) < 0.3)
+
+
+def test_noise_and_jpeg_change_pixels_but_tags_are_found(detector):
+    cam = rsu_camera("sw")
+    bus = bundled_vehicle("bus_triple")
+    pv = place(cam, bus, 12.0, yaw=0.4)
+    clean = render(cam, [pv], model=ImageModel(noise_sigma=0.0, jpeg_quality=0))
+    for model in (ImageModel(noise_sigma=6.0, jpeg_quality=0), ImageModel(noise_sigma=0.0, jpeg_quality=40),
+                  ImageModel(noise_sigma=4.0, jpeg_quality=60, tag_black=60, tag_white=170, gain=0.8)):
+        img = render(cam, [pv], model=model, rng=np.random.default_rng(4))
+        assert img.dtype == np.uint8 and img.shape == (cam.height, cam.width)
+        assert np.abs(img.astype(int) - clean).mean() > 0.5
+        found = corner_errors(detector, img, cam, pv)
+        assert set(found) == set(bus.tag_ids), model.describe()
+        assert rms(found.values()) < 0.6
+    noise = render(cam, [], model=ImageModel(noise_sigma=3.0, jpeg_quality=0), rng=np.random.default_rng(5))
+    flat = render(cam, [], model=ImageModel(noise_sigma=0.0, jpeg_quality=0))
+    assert abs(float((noise.astype(float) - flat).std()) - 3.0) < 0.2
+    same = [render(cam, [pv], rng=np.random.default_rng(9)) for _ in range(2)]
+    np.testing.assert_array_equal(same[0], same[1])
+
+
+def test_calibration_error_perturbs_only_extrinsics():
+    cam = rsu_camera("sw")
+    model = ImageModel(calib_rot_sigma_deg=0.1, calib_trans_sigma=0.05)
+    bad = perturb_camera(cam, model, np.random.default_rng(0))
+    np.testing.assert_array_equal(bad.K, cam.K)
+    dR = bad.R @ cam.R.T
+    ang = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))
+    assert 0 < ang < 0.6
+    assert 0 < np.linalg.norm(bad.center - cam.center) < 0.3
+    same = perturb_camera(cam, ImageModel.ideal(), np.random.default_rng(0))
+    np.testing.assert_allclose(same.R, cam.R)
+    assert "blur 0.6 px" in ImageModel().describe()
