@@ -14,7 +14,7 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 demo: setup
-	$(BIN)/toptag locate --camera examples/rsu-sw-960x720.json --vehicle toptag/data/bus_double.json examples/*.jpg
+	$(BIN)/toptag locate --camera examples/rsu-sw-960x720.json --vehicle examples/bus-17.json examples/*.jpg
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -153,11 +153,7 @@ def _tag_layers(pv: PlacedVehicle, camera: Camera, model: ImageModel) -> list[_T
         H = to_grid @ to_tag @ to_vehicle @ Hp
         cells = tag_cells(v.family, tid)
         levels = np.where(cells > 127, model.tag_white, model.tag_black).astype(np.float32)
-        plate_local = np.array([[half_up, half_side], [half_up, -half_side], [-half_up, -half_side],
-                                [-half_up, half_side]])
-        c, s = np.cos(spec.yaw), np.sin(spec.yaw)
-        plate_xy = plate_local @ np.array([[c, s], [-s, c]]) + np.asarray(spec.center)
-        plate = vehicle_to_world(np.column_stack([plate_xy, np.zeros(4)]), pv.x, pv.y, pv.yaw, zr)
+        plate = vehicle_to_world(v.plate_corners(tid), pv.x, pv.y, pv.yaw, zr)
         out.append(_Tag(H, levels, n, plate))
     return out
 
@@ -514,9 +510,24 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
         cv2.randn(rast.noise, 0.0, float(model.noise_sigma))
         cv2.add(out, rast.noise, dst=out, dtype=cv2.CV_8U)
     if model.jpeg_quality > 0:
-        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(model.jpeg_quality)])
-        out = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        out = cv2.imdecode(np.frombuffer(encode_jpeg(out, model.jpeg_quality), np.uint8), cv2.IMREAD_GRAYSCALE)
     return out
+
+
+def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def render_jpeg(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None = None,
+                rng: np.random.Generator | None = None) -> bytes:
+    """The frame as the RSU's camera stream delivers it: JPEG bytes at the model's quality (90 when the
+    model has JPEG off), compressed once."""
+    model = ImageModel() if model is None else model
+    raw = render(camera, vehicles, occluders, model.model_copy(update={"jpeg_quality": 0}), rng)
+    return encode_jpeg(raw, model.jpeg_quality or 90)
 
 
 def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out: np.ndarray) -> None:

@@ -11,6 +11,7 @@ import sys
 # command words -> "module:function"; each function takes argv (list[str]) and returns an exit code.
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
+    ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
     ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),
 }
 
@@ -41,12 +42,18 @@ def main(argv: list[str] | None = None) -> None:
         code = dispatch(sys.argv[1:] if argv is None else argv)
     except KeyboardInterrupt:
         code = 130
+    except BrokenPipeError:  # `toptag locate ... | head`: the reader has all it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 0
     except SystemExit as e:  # argparse's --help and usage errors
         code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
         if isinstance(e.code, str):
             print(e.code, file=sys.stderr)
     # pupil-apriltags' Detector.__del__ may crash during interpreter teardown: everything has been
     # printed, so flush and leave without running finalisers.
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (BrokenPipeError, ValueError):
+            pass
     os._exit(code)

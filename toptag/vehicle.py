@@ -92,6 +92,13 @@ class Vehicle:
         top-left of the printed tag)."""
         return self._corners[tag_id]
 
+    def plate_corners(self, tag_id: int) -> np.ndarray:
+        """(4,3) corners of the printed plate (black square plus its one-cell white border), same order."""
+        corners = self._corners[tag_id]
+        centre = corners.mean(axis=0)
+        cells = FAMILY_BITS[self.family] + 2
+        return centre + (corners - centre) * (cells + 2) / cells
+
     def corners(self, tag_ids) -> np.ndarray:
         """Stacked (4·n, 3) corners of several tags, in the given order."""
         return np.vstack([self._corners[i] for i in tag_ids])

@@ -1,0 +1,130 @@
+"""Where a vehicle's tags can appear in an image: predicted tag regions and acquisition bands.
+
+Pure geometry on a calibrated camera; the RSU pipeline detects only inside these regions."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from toptag.camera import Camera
+from toptag.geometry import vehicle_to_world
+from toptag.vehicle import Vehicle
+
+
+@dataclass(frozen=True)
+class Box:
+    """Pixel rectangle [x0, x1) × [y0, y1) of a frame."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+
+    @property
+    def area(self) -> int:
+        return max(0, self.x1 - self.x0) * max(0, self.y1 - self.y0)
+
+    def overlaps(self, o: "Box", gap: int = 0) -> bool:
+        return not (self.x1 + gap <= o.x0 or o.x1 + gap <= self.x0 or self.y1 + gap <= o.y0 or o.y1 + gap <= self.y0)
+
+    def union(self, o: "Box") -> "Box":
+        return Box(min(self.x0, o.x0), min(self.y0, o.y0), max(self.x1, o.x1), max(self.y1, o.y1))
+
+
+def bounding_box(camera: Camera, points_world: np.ndarray, pad_px: float) -> Box | None:
+    """Padded pixel bounding box of world points, clipped to the frame; None if none is in front or in view."""
+    in_front = camera.to_camera(points_world)[:, 2] > 0.1
+    if not np.any(in_front):
+        return None
+    uv = camera.project(points_world[in_front])
+    x0, y0 = np.floor(uv.min(axis=0) - pad_px).astype(int)
+    x1, y1 = np.ceil(uv.max(axis=0) + pad_px).astype(int) + 1
+    box = Box(max(0, x0), max(0, y0), min(camera.width, x1), min(camera.height, y1))
+    return box if box.x1 - box.x0 >= 8 and box.y1 - box.y0 >= 8 else None
+
+
+def tag_region(camera: Camera, vehicle: Vehicle, tag_id: int, x: float, y: float, yaw: float, z: float,
+               pos_radius: float, yaw_margin: float, z_margin: float, pad_px: float = 4.0) -> Box | None:
+    """Every pixel the tag's plate can cover for a pose within the given margins."""
+    plate = vehicle.plate_corners(tag_id)
+    pts = []
+    for dyaw in (-yaw_margin, 0.0, yaw_margin):
+        for dz in (-z_margin, z_margin):
+            for dx, dy in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
+                pts.append(vehicle_to_world(plate, x + dx * pos_radius, y + dy * pos_radius, yaw + dyaw, z + dz))
+    return bounding_box(camera, np.vstack(pts), pad_px)
+
+
+def merge_boxes(boxes: list[Box], gap: int = 0) -> list[Box]:
+    """Union overlapping boxes until the rest are disjoint (a tag inside one input box stays inside one output)."""
+    out = [b for b in boxes if b is not None]
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(out)):
+            for j in range(i + 1, len(out)):
+                if out[i].overlaps(out[j], gap):
+                    out[i] = out[i].union(out.pop(j))
+                    merged = True
+                    break
+            if merged:
+                break
+    return out
+
+
+@dataclass(frozen=True)
+class Band:
+    """Rows of the frame searched with one quad decimation during acquisition."""
+
+    box: Box
+    decimate: int
+
+
+def tag_extent_by_row(camera: Camera, roof_z: float, tag_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each image row, (shortest side, vertical extent) in px of a tag of `tag_size` lying flat at
+    `roof_z` whose centre appears on that row, worst cases over yaw; zeros where the plane is not seen."""
+    step = max(1, camera.height // 240)  # the sizes vary slowly with the row: sample, then interpolate
+    rows = np.arange(0, camera.height, step, dtype=float)
+    centre_px = np.column_stack([np.full_like(rows, (camera.width - 1) / 2.0), rows])
+    ground = camera.backproject_to_plane(centre_px, roof_z)
+    side = np.zeros(rows.size)
+    extent = np.zeros(rows.size)
+    half = tag_size / 2
+    square = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]])
+    for r in np.flatnonzero(np.all(np.isfinite(ground), axis=1)):
+        for yaw in (0.0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2):
+            c, s = np.cos(yaw), np.sin(yaw)
+            uv = camera.project(square @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + ground[r], distort=False)
+            shortest = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min()
+            side[r] = shortest if side[r] == 0 else min(side[r], shortest)
+            extent[r] = max(extent[r], np.ptp(uv[:, 1]))
+    every_row = np.arange(camera.height)
+    return np.interp(every_row, rows, side), np.interp(every_row, rows, extent)
+
+
+def acquisition_bands(camera: Camera, roof_z: float, tag_size: float, min_side_px: float,
+                      max_decimate: int = 4) -> list[Band]:
+    """Split the frame into row bands, each searched at the coarsest decimation that still leaves a tag
+    at least `min_side_px` long in the decimated image (the pyramid of the paper, by image row: far
+    rows hold small tags and are searched finely, near rows coarsely). A band owns the tags centred on
+    its rows and reaches half a tag (with its white border) beyond them, so no tag is cut by a band edge.
+    Rows above the horizon of the roof plane are skipped."""
+    side, extent = tag_extent_by_row(camera, roof_z, tag_size)
+    visible = np.flatnonzero(side > 0)
+    if visible.size == 0:
+        return []
+    levels = np.ones(camera.height, dtype=int)
+    d = 2
+    while d <= max_decimate:
+        levels[side / d >= min_side_px] = d
+        d *= 2
+    bands: list[Band] = []
+    start = int(visible[0])
+    for r in range(start + 1, camera.height + 1):
+        if r == camera.height or levels[r] != levels[start]:
+            top, bottom = (int(np.ceil(0.6 * extent[i])) + 4 for i in (start, r - 1))
+            box = Box(0, max(0, start - top), camera.width, min(camera.height, r + bottom))
+            bands.append(Band(box, int(levels[start])))
+            start = r
+    return bands

@@ -1,0 +1,87 @@
+"""Per-vehicle image tracking state: where a found bus will be in the next frame, and how sure we are.
+
+Motion is bounded by the bus's physics (≤ 30 km/h, moderate acceleration), so a short-term constant
+velocity prediction with a margin that grows with the time since the last fix always contains it."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from toptag.geometry import wrap_angle
+
+MAX_SPEED_MPS = 30 / 3.6
+SPEED_MARGIN = 1.2
+
+
+@dataclass
+class TrackSettings:
+    base_radius_m: float = 0.25  # fix error plus the tag plate's own margin
+    max_accel_mps2: float = 3.0  # emergency braking of a city bus
+    max_yaw_rate: float = 0.6  # rad/s: a tight turn at low speed
+    z_margin_m: float = 0.2  # roof bounce and tyre/suspension spread
+    lost_after_misses: int = 3  # frames without any tag before falling back to acquisition
+
+
+@dataclass
+class PosePrediction:
+    x: float
+    y: float
+    yaw: float
+    z: float
+    pos_radius: float
+    yaw_margin: float
+    z_margin: float
+
+
+class VehicleTrack:
+    """The last confident image fixes of one vehicle in one camera."""
+
+    def __init__(self, settings: TrackSettings | None = None):
+        self.settings = settings or TrackSettings()
+        self.t_ns: int | None = None
+        self.pose: np.ndarray | None = None  # x, y, yaw, z
+        self.velocity: np.ndarray | None = None  # vx, vy, yaw_rate
+        self.misses = 0
+
+    @property
+    def found(self) -> bool:
+        return self.pose is not None
+
+    def update(self, t_ns: int, x: float, y: float, yaw: float, z: float) -> None:
+        pose = np.array([x, y, yaw, z])
+        if self.pose is not None and t_ns > self.t_ns:
+            dt = (t_ns - self.t_ns) * 1e-9
+            v = np.array([(x - self.pose[0]) / dt, (y - self.pose[1]) / dt,
+                          wrap_angle(yaw - self.pose[2]) / dt])
+            speed = np.hypot(v[0], v[1])
+            cap = MAX_SPEED_MPS * SPEED_MARGIN
+            if speed > cap:  # a noisy pair of fixes must not throw the next region off
+                v[:2] *= cap / speed
+            v[2] = np.clip(v[2], -self.settings.max_yaw_rate, self.settings.max_yaw_rate)
+            self.velocity = v
+        self.pose, self.t_ns, self.misses = pose, t_ns, 0
+
+    def miss(self) -> None:
+        self.misses += 1
+        if self.misses >= self.settings.lost_after_misses:
+            self.reset()
+
+    def reset(self) -> None:
+        self.pose = self.velocity = self.t_ns = None
+        self.misses = 0
+
+    def predict(self, t_ns: int) -> PosePrediction:
+        s = self.settings
+        dt = max(0.0, (t_ns - self.t_ns) * 1e-9)
+        x, y, yaw, z = self.pose
+        if self.velocity is None:
+            # One fix only: the bus may be moving at any legal speed in any direction.
+            radius = s.base_radius_m + MAX_SPEED_MPS * SPEED_MARGIN * dt
+            yaw_margin = s.max_yaw_rate * dt + 0.05
+        else:
+            vx, vy, w = self.velocity
+            x, y, yaw = x + vx * dt, y + vy * dt, yaw + w * dt
+            radius = s.base_radius_m + 0.5 * s.max_accel_mps2 * dt ** 2 + 1.0 * dt  # 1 m/s velocity error
+            yaw_margin = 0.03 + 0.3 * dt
+        return PosePrediction(x, y, float(wrap_angle(yaw)), z, radius, yaw_margin, s.z_margin_m)

@@ -1,0 +1,108 @@
+"""Random scenes for studies, examples and tests: bus poses in the RSU's sector, a second tagged bus,
+a truck hiding part of the roof. Pure: numpy in, scene objects out."""
+from __future__ import annotations
+
+import numpy as np
+
+from sim.render import Occluder, PlacedVehicle
+from sim.scene import ROAD_HALF_WIDTH
+from toptag.camera import Camera
+from toptag.geometry import vehicle_to_world
+from toptag.vehicle import Vehicle
+
+SECTOR_HALF_ANGLE = np.deg2rad(30.0)  # around the RSU heading: the intersection quarter nearest to it
+
+
+def horizontal_distance(camera: Camera, x: float, y: float) -> float:
+    c = camera.center
+    return float(np.hypot(x - c[0], y - c[1]))
+
+
+def camera_heading(camera: Camera) -> float:
+    fwd = camera.R[2]
+    return float(np.arctan2(fwd[1], fwd[0]))
+
+
+def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> bool:
+    """Every tag's printed plate (with its white border) projects inside the image."""
+    for tid in pv.vehicle.tag_ids:
+        world = vehicle_to_world(pv.vehicle.plate_corners(tid), pv.x, pv.y, pv.yaw, pv.roof_z)
+        if np.any(camera.to_camera(world)[:, 2] <= 0) or not np.all(camera.in_image(camera.project(world), margin_px)):
+            return False
+    return True
+
+
+def footprints_overlap(a, b, clearance: float = 0.5) -> bool:
+    """Conservative test on bounding circles of two boxes on the ground."""
+    ra = np.hypot(a.length, a.width) / 2
+    rb = np.hypot(b.length, b.width) / 2
+    return np.hypot(a.x - b.x, a.y - b.y) < ra + rb + clearance
+
+
+def sector_pose(rng: np.random.Generator, camera: Camera, vehicle: Vehicle, distance: float,
+                roof_dz: float = 0.0, tries: int = 200) -> PlacedVehicle | None:
+    """The vehicle at `distance` (horizontal, camera to vehicle centre) within the sector in front of
+    the RSU, any heading, with its tags fully in view; None if no such pose was found."""
+    c = camera.center
+    head = camera_heading(camera)
+    for _ in range(tries):
+        bearing = head + rng.uniform(-SECTOR_HALF_ANGLE, SECTOR_HALF_ANGLE)
+        pv = PlacedVehicle(vehicle, c[0] + distance * np.cos(bearing), c[1] + distance * np.sin(bearing),
+                           rng.uniform(-np.pi, np.pi), vehicle.height + roof_dz)
+        if plates_in_view(camera, pv):
+            return pv
+    return None
+
+
+def second_bus(rng: np.random.Generator, camera: Camera, vehicle: Vehicle, avoid: list, tries: int = 200):
+    """Another tagged bus somewhere in view on the roads, not overlapping anything in `avoid`."""
+    for _ in range(tries):
+        d = rng.uniform(6.0, 20.0)
+        pv = sector_pose(rng, camera, vehicle, d, tries=1)
+        if pv is None:
+            continue
+        on_road = min(abs(pv.x), abs(pv.y)) <= ROAD_HALF_WIDTH
+        if on_road and not any(footprints_overlap(pv, o) for o in avoid):
+            return pv
+    return None
+
+
+def segment_hits_box(a: np.ndarray, b: np.ndarray, box) -> bool:
+    """Does the segment a->b pass through the upright box (Occluder-like: x, y, yaw, length, width, height)?"""
+    c, s = np.cos(box.yaw), np.sin(box.yaw)
+    to_local = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    la, lb = to_local @ (a - [box.x, box.y, 0.0]), to_local @ (b - [box.x, box.y, 0.0])
+    lo = np.array([-box.length / 2, -box.width / 2, 0.0])
+    hi = np.array([box.length / 2, box.width / 2, box.height])
+    d = lb - la
+    t0, t1 = 0.0, 1.0
+    for k in range(3):  # slab test
+        if abs(d[k]) < 1e-12:
+            if not lo[k] <= la[k] <= hi[k]:
+                return False
+            continue
+        u, v = sorted(((lo[k] - la[k]) / d[k], (hi[k] - la[k]) / d[k]))
+        t0, t1 = max(t0, u), min(t1, v)
+        if t0 > t1:
+            return False
+    return True
+
+
+def occluding_truck(rng: np.random.Generator, camera: Camera, target: PlacedVehicle, tries: int = 300,
+                    length: float = 8.0, width: float = 2.5) -> Occluder | None:
+    """A truck in the next lane, on the camera's side of `target`, tall enough to hide part of its roof
+    tags while at least one tag stays fully visible; None if no such placement was found."""
+    c = camera.center
+    plates = {tid: vehicle_to_world(target.vehicle.plate_corners(tid), target.x, target.y, target.yaw,
+                                    target.roof_z) for tid in target.vehicle.tag_ids}
+    left = np.array([-np.sin(target.yaw), np.cos(target.yaw)])
+    fwd = np.array([np.cos(target.yaw), np.sin(target.yaw)])
+    side = 1.0 if left @ (c[:2] - [target.x, target.y]) > 0 else -1.0
+    for _ in range(tries):
+        p = np.array([target.x, target.y]) + side * rng.uniform(3.0, 3.8) * left + rng.uniform(-4, 4) * fwd
+        truck = Occluder(length, width, target.roof_z + rng.uniform(0.9, 1.5), float(p[0]), float(p[1]),
+                         float(target.yaw + rng.normal(0, 0.05)))
+        hidden = {tid: sum(segment_hits_box(c, q, truck) for q in pts) for tid, pts in plates.items()}
+        if any(hidden.values()) and any(n == 0 for n in hidden.values()):
+            return truck
+    return None
