@@ -12,6 +12,7 @@ import sys
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
     ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
+    ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),
 }
 

@@ -22,8 +22,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weighting", choices=("paper", "principled"), default="principled",
                    help="S.Opt. residual weighting (paper: mu = 1; principled: sigma_px / sigma_h)")
     p.add_argument("--max-hamming", type=int, default=0, help="accepted bit errors per tag (default 0)")
-    p.add_argument("--quad-decimate", type=float, default=DetectorSettings().quad_decimate)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--search", choices=("pyramid", "full"), default="pyramid",
+                   help="pyramid: row bands at the coarsest level that resolves a tag, confirmed at full "
+                        "resolution (default); full: the whole frame at --quad-decimate")
+    p.add_argument("--quad-decimate", type=float, default=DetectorSettings().quad_decimate,
+                   help="quad search decimation of --search full (default 1)")
+    p.add_argument("--quad-sigma", type=float, default=DetectorSettings().quad_sigma)
+    p.add_argument("--sharpening", type=float, default=DetectorSettings().decode_sharpening)
+    p.add_argument("--threads", type=int, default=2, help="detection threads (default 2)")
     p.add_argument("images", nargs="+", metavar="IMAGE")
     return p
 
@@ -34,7 +40,8 @@ def main(argv: list[str]) -> int:
         camera = Camera.load(args.camera)
         vehicle = Vehicle.load(args.vehicle)
         settings = DetectorSettings(max_hamming=args.max_hamming, quad_decimate=args.quad_decimate,
-                                    nthreads=args.threads)
+                                    quad_sigma=args.quad_sigma, decode_sharpening=args.sharpening,
+                                    nthreads=args.threads if args.search == "full" else 1)
     except (InputError, ValueError) as e:
         print(f"toptag locate: {e}", file=sys.stderr)
         return 2
@@ -44,7 +51,8 @@ def main(argv: list[str]) -> int:
     # The RSU's own acquisition (row-banded pyramid, confirmed at full resolution) on each still image:
     # one pipeline, one set of detectors for all images.
     pipeline = RsuPipeline(camera, PipelineSettings(method=args.method, weighting=args.weighting,
-                                                    detector=settings, tracking=False))
+                                                    detector=settings, tracking=False, acquire_mode=args.search,
+                                                    workers=args.threads))
     pipeline.add_vehicle(vehicle)
     code = 0
     for path in args.images:

@@ -2,22 +2,24 @@
 predicted regions at full resolution, solve each bus's pose.
 
 Full-frame AprilTag detection costs ~0.1 s at 960×720 and >1 s at 3200×2400; the pipeline instead
-(1) acquires a bus with a row-banded pyramid search (coarse where tags are big, fine where they are
-small) confirmed at full resolution, then (2) tracks it, cropping each tag's predicted region."""
+(1) acquires a bus with a row-banded pyramid search (coarse where tags are big, fine or enlarged where
+they are small), confirmed at full resolution, then (2) tracks it, cropping each tag's predicted region."""
 from __future__ import annotations
 
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.rsu.regions import Band, Box, acquisition_bands, merge_boxes, tag_region
+from services.rsu.regions import Band, Box, acquisition_bands, merge_boxes, projected_side_px, tag_region
 from services.rsu.tracking import TrackSettings, VehicleTrack
 from toptag.camera import Camera
 from toptag.detection import DetectorSettings, RawDetection, TagDetector, assign_to_vehicles
+from toptag.geometry import vehicle_to_world
 from toptag.solvers import PoseSolution, solve
 from toptag.vehicle import Vehicle
 
@@ -29,21 +31,37 @@ class PipelineSettings(BaseModel):
     weighting: str = "principled"
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     tracking: bool = True
-    # Acquisition pyramid: a band is searched at decimation d when its smallest tag is still this long.
+    # Acquisition: "pyramid" searches each row band at the coarsest level that still resolves a tag at
+    # least acquire_min_side_px long; "full" searches the whole frame at detector.quad_decimate.
+    acquire_mode: Literal["pyramid", "full"] = "pyramid"
     acquire_min_side_px: float = 24.0
     acquire_max_decimate: int = 8
-    # While other buses are tracked, an unfound one is searched at most this often (acquisition is the
-    # expensive step; tracked buses must keep their frame rate).
+    # Tags whose shortest side is below this many pixels are detected in a 2x enlarged image: at 20-25 m
+    # on 960x720 a cell is 1-2 px tall and decoding fails without it.
+    upsample_below_px: float = 24.0
+    # While other buses are tracked, an unfound one is searched at most this often: acquisition is the
+    # expensive step and tracked buses must keep their frame rate.
     acquire_period_s: float = 0.5
     crop_pad_px: float = 6.0
     workers: int = 2
+
+
+@dataclass(frozen=True)
+class DetectJob:
+    box: Box
+    decimate: float = 1.0
+    upsample: int = 1
+
+    @property
+    def cost(self) -> float:
+        return self.box.area * (self.upsample / self.decimate) ** 2
 
 
 @dataclass
 class VehicleResult:
     vehicle_id: str
     solution: PoseSolution | None
-    mode: str  # "tracked" | "acquired" | "searching" | "skipped"
+    mode: str  # "tracked" | "acquired" | "searching" | "waiting"
     regions: int = 0
 
 
@@ -54,41 +72,41 @@ class FrameResult:
     detect_ms: float = 0.0
     solve_ms: float = 0.0
     pixels_searched: int = 0
+    acquired: bool = False
 
 
 class _DetectorPool:
-    """One detector per thread and decimation: pupil-apriltags detectors are not thread-safe, and the
-    ctypes calls release the GIL so crops really run on both cores."""
+    """One detector per thread and decimation: pupil-apriltags detectors are not thread-safe, and its
+    ctypes calls release the GIL, so crops really run on both cores."""
 
     def __init__(self, families, settings: DetectorSettings, workers: int):
         self.families, self.settings = families, settings
         self._local = threading.local()
         self.executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
 
-    def get(self, decimate: float = 1.0) -> TagDetector:
+    def _detector(self, decimate: float) -> TagDetector:
         cache = self._local.__dict__.setdefault("detectors", {})
         if decimate not in cache:
-            s = self.settings.model_copy(update={"quad_decimate": float(decimate), "nthreads": 1})
+            s = self.settings.model_copy(update={"quad_decimate": float(decimate)})
             cache[decimate] = TagDetector(self.families, s)
         return cache[decimate]
 
-    def detect_boxes(self, gray: np.ndarray, jobs: list[tuple[Box, float]]) -> list[list[RawDetection]]:
-        """Detections per job (box, decimation), in job order."""
+    def run(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[list[RawDetection]]:
+        """Detections per job, in job order."""
 
-        def run(job):
-            box, dec = job
-            return self.get(dec).detect_raw(gray[box.y0:box.y1, box.x0:box.x1], offset=(box.x0, box.y0))
+        def one(job: DetectJob):
+            b = job.box
+            return self._detector(job.decimate).detect_raw(gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample)
 
         if self.executor is None or len(jobs) < 2:
-            return [run(j) for j in jobs]
-        # Largest first so that the workers finish together.
-        order = sorted(range(len(jobs)), key=lambda i: -jobs[i][0].area / jobs[i][1] ** 2)
-        results = dict(zip(order, self.executor.map(run, [jobs[i] for i in order])))
+            return [one(j) for j in jobs]
+        order = sorted(range(len(jobs)), key=lambda i: -jobs[i].cost)  # largest first: workers end together
+        results = dict(zip(order, self.executor.map(one, [jobs[i] for i in order])))
         return [results[i] for i in range(len(jobs))]
 
 
 class RsuPipeline:
-    """Per-camera pipeline. `process(gray, t_ns)` once per frame; vehicles come and go with the bags."""
+    """Per-camera pipeline. `process(gray, t_ns)` once per frame; vehicles come and go with their bags."""
 
     def __init__(self, camera: Camera, settings: PipelineSettings | None = None):
         self.camera = camera
@@ -118,16 +136,6 @@ class RsuPipeline:
             self._pools[families] = _DetectorPool(families, self.settings.detector, self.settings.workers)
         return self._pools[families]
 
-    def _acquisition_bands(self, vehicles: list[Vehicle]) -> list[Band]:
-        # The smallest tag at the lowest roof decides how fine each row must be searched.
-        roof = min(v.height for v in vehicles)
-        size = min(min(t.size, t.extent_up) for v in vehicles for t in v.tags.values())
-        key = (round(roof, 2), round(size, 3))
-        if key not in self._bands:
-            self._bands[key] = acquisition_bands(self.camera, roof, size, self.settings.acquire_min_side_px,
-                                                 self.settings.acquire_max_decimate)
-        return self._bands[key]
-
     # ---- per frame ----------------------------------------------------------------------------
     def process(self, gray: np.ndarray, t_ns: int) -> FrameResult:
         result = FrameResult(t_ns)
@@ -141,45 +149,41 @@ class RsuPipeline:
         unfound = [vid for vid in self.vehicles if vid not in tracked]
         t0 = time.perf_counter()
 
-        jobs: list[tuple[Box, float]] = []
+        jobs: list[DetectJob] = []
         regions_of: dict[str, int] = {}
         for vid in tracked:
-            boxes = self._predicted_boxes(self.vehicles[vid], self.tracks[vid], t_ns)
-            regions_of[vid] = len(boxes)
-            jobs += [(b, 1.0) for b in boxes]
-        jobs = [(b, 1.0) for b in merge_boxes([b for b, _ in jobs])]
-
-        acquiring = bool(unfound) and self._acquisition_due(t_ns, bool(tracked))
-        if acquiring:
+            vjobs = self._tracking_jobs(self.vehicles[vid], self.tracks[vid], t_ns)
+            regions_of[vid] = len(vjobs)
+            jobs += vjobs
+        jobs = _merge_jobs(jobs)
+        result.acquired = bool(unfound) and self._acquisition_due(t_ns, bool(tracked))
+        if result.acquired:
             self._last_acquire_ns = t_ns
-            jobs += [(band.box, float(band.decimate)) for band in
-                     self._acquisition_bands([self.vehicles[v] for v in unfound])]
-        per_job = pool.detect_boxes(gray, jobs)
-        raw = [d for (_, dec), found in zip(jobs, per_job) if dec == 1.0 for d in found]
-        coarse = [d for (_, dec), found in zip(jobs, per_job) if dec != 1.0 for d in found]
+            jobs += self._acquisition_jobs([self.vehicles[v] for v in unfound])
+
+        per_job = pool.run(gray, jobs)
+        raw = [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
         wanted = {(self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids}
-        coarse = [d for d in coarse if (d.family, d.tag_id) in wanted]
+        coarse = [d for job, found in zip(jobs, per_job) if job.decimate != 1.0 for d in found
+                  if (d.family, d.tag_id) in wanted]
         if coarse:
             raw += self._confirm_full_resolution(gray, coarse, pool)
-        result.pixels_searched = sum(b.area for b, _ in jobs)
+        result.pixels_searched = sum(j.box.area for j in jobs)
         result.detect_ms = (time.perf_counter() - t0) * 1e3
 
         t1 = time.perf_counter()
         observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
         for vid, vehicle in self.vehicles.items():
             obs = observed.get(vid, [])
-            mode = "tracked" if vid in tracked else ("acquired" if acquiring else "skipped")
-            if not obs:
-                if vid in tracked:
-                    self.tracks[vid].miss()
-                result.vehicles[vid] = VehicleResult(vid, None, mode if mode == "skipped" else "searching",
-                                                     regions_of.get(vid, 0))
-                continue
-            sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting)
-            if sol.ok:
+            was_tracked = vid in tracked
+            mode = "tracked" if was_tracked else ("acquired" if result.acquired else "waiting")
+            sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None
+            if sol is not None and sol.ok:
                 self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
-            elif vid in tracked:
+            elif was_tracked:
                 self.tracks[vid].miss()
+            if sol is None and mode != "waiting":
+                mode = "searching"
             result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0))
         result.solve_ms = (time.perf_counter() - t1) * 1e3
         return result
@@ -189,23 +193,56 @@ class RsuPipeline:
             return True
         return (t_ns - self._last_acquire_ns) * 1e-9 >= self.settings.acquire_period_s
 
-    def _predicted_boxes(self, vehicle: Vehicle, track: VehicleTrack, t_ns: int) -> list[Box]:
-        p = track.predict(t_ns)
-        boxes = [tag_region(self.camera, vehicle, tid, p.x, p.y, p.yaw, p.z, p.pos_radius, p.yaw_margin,
-                            p.z_margin, self.settings.crop_pad_px) for tid in vehicle.tag_ids]
-        return [b for b in boxes if b is not None]
+    def _acquisition_jobs(self, vehicles: list[Vehicle]) -> list[DetectJob]:
+        s = self.settings
+        if s.acquire_mode == "full":
+            return [DetectJob(Box(0, 0, self.camera.width, self.camera.height), s.detector.quad_decimate)]
+        # The smallest tag at the lowest roof decides how finely each row must be searched.
+        roof = min(v.height for v in vehicles)
+        size = min(min(t.size, t.extent_up) for v in vehicles for t in v.tags.values())
+        key = (round(roof, 2), round(size, 3))
+        if key not in self._bands:
+            self._bands[key] = acquisition_bands(self.camera, roof, size, s.acquire_min_side_px,
+                                                 s.acquire_max_decimate, s.upsample_below_px)
+        return [DetectJob(b.box, b.decimate, b.upsample) for b in self._bands[key]]
 
-    def _confirm_full_resolution(self, gray, raw: list[RawDetection], pool) -> list[RawDetection]:
+    def _tracking_jobs(self, vehicle: Vehicle, track: VehicleTrack, t_ns: int) -> list[DetectJob]:
+        p = track.predict(t_ns)
+        jobs = []
+        for tid in vehicle.tag_ids:
+            box = tag_region(self.camera, vehicle, tid, p.x, p.y, p.yaw, p.z, p.pos_radius, p.yaw_margin,
+                             p.z_margin, self.settings.crop_pad_px)
+            if box is not None:
+                corners = vehicle_to_world(vehicle.tag_corners(tid), p.x, p.y, p.yaw, p.z)
+                jobs.append(DetectJob(box, 1.0, self._upsample_for(projected_side_px(self.camera, corners))))
+        return jobs
+
+    def _upsample_for(self, side_px: float) -> int:
+        return 2 if side_px < self.settings.upsample_below_px else 1
+
+    def _confirm_full_resolution(self, gray, coarse: list[RawDetection], pool) -> list[RawDetection]:
         """Re-detect each coarse find in a crop at full resolution: decimated quads lose corner accuracy.
         A coarse find that the fine pass cannot confirm is dropped: unrefined corners are never used."""
-        crops = []
-        for d in raw:
+        jobs = []
+        for d in coarse:
             lo, hi = d.corners.min(axis=0), d.corners.max(axis=0)
             pad = 0.35 * (hi - lo).max() + self.settings.crop_pad_px  # the white border and a margin
-            crops.append(Box(max(0, int(lo[0] - pad)), max(0, int(lo[1] - pad)),
-                             min(self.camera.width, int(hi[0] + pad) + 1),
-                             min(self.camera.height, int(hi[1] + pad) + 1)))
-        return [d for found in pool.detect_boxes(gray, [(b, 1.0) for b in merge_boxes(crops)]) for d in found]
+            box = Box(max(0, int(lo[0] - pad)), max(0, int(lo[1] - pad)),
+                      min(self.camera.width, int(hi[0] + pad) + 1), min(self.camera.height, int(hi[1] + pad) + 1))
+            side = float(np.linalg.norm(np.roll(d.corners, -1, axis=0) - d.corners, axis=1).min())
+            jobs.append(DetectJob(box, 1.0, self._upsample_for(side)))
+        return [d for found in pool.run(gray, _merge_jobs(jobs)) for d in found]
+
+
+def _merge_jobs(jobs: list[DetectJob]) -> list[DetectJob]:
+    """Overlapping crops become one (so no tag is found twice or cut); the merged crop is enlarged if
+    any of its parts needed it."""
+    merged = merge_boxes([j.box for j in jobs])
+    out = []
+    for box in merged:
+        up = max((j.upsample for j in jobs if box.overlaps(j.box)), default=1)
+        out.append(DetectJob(box, 1.0, up))
+    return out
 
 
 def _dedupe(raw: list[RawDetection]) -> list[RawDetection]:

@@ -44,6 +44,12 @@ def bounding_box(camera: Camera, points_world: np.ndarray, pad_px: float) -> Box
     return box if box.x1 - box.x0 >= 8 and box.y1 - box.y0 >= 8 else None
 
 
+def projected_side_px(camera: Camera, corners_world: np.ndarray) -> float:
+    """Shortest side (px) of a tag whose corners are given in world coordinates."""
+    uv = camera.project(corners_world)
+    return float(np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min())
+
+
 def tag_region(camera: Camera, vehicle: Vehicle, tag_id: int, x: float, y: float, yaw: float, z: float,
                pos_radius: float, yaw_margin: float, z_margin: float, pad_px: float = 4.0) -> Box | None:
     """Every pixel the tag's plate can cover for a pose within the given margins."""
@@ -75,10 +81,12 @@ def merge_boxes(boxes: list[Box], gap: int = 0) -> list[Box]:
 
 @dataclass(frozen=True)
 class Band:
-    """Rows of the frame searched with one quad decimation during acquisition."""
+    """Rows of the frame searched at one pyramid level during acquisition: quad search decimated by
+    `decimate`, or the image enlarged `upsample` times (far rows, where cells are 1-2 px)."""
 
     box: Box
-    decimate: int
+    decimate: float = 1.0
+    upsample: int = 1
 
 
 def tag_extent_by_row(camera: Camera, roof_z: float, tag_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -104,27 +112,30 @@ def tag_extent_by_row(camera: Camera, roof_z: float, tag_size: float) -> tuple[n
 
 
 def acquisition_bands(camera: Camera, roof_z: float, tag_size: float, min_side_px: float,
-                      max_decimate: int = 4) -> list[Band]:
-    """Split the frame into row bands, each searched at the coarsest decimation that still leaves a tag
-    at least `min_side_px` long in the decimated image (the pyramid of the paper, by image row: far
-    rows hold small tags and are searched finely, near rows coarsely). A band owns the tags centred on
-    its rows and reaches half a tag (with its white border) beyond them, so no tag is cut by a band edge.
-    Rows above the horizon of the roof plane are skipped."""
+                      max_decimate: int = 8, upsample_below_px: float = 0.0) -> list[Band]:
+    """Split the frame into row bands, each searched at the coarsest pyramid level that still leaves a
+    tag at least `min_side_px` long (the paper's hierarchical processing, by image row: far rows hold
+    small tags and are searched finely, near rows coarsely); rows whose tags are shorter than
+    `upsample_below_px` are searched enlarged 2x. A band owns the tags centred on its rows and reaches
+    half a tag (with its white border) beyond them, so no tag is cut by a band edge. Rows above the
+    horizon of the roof plane are skipped."""
     side, extent = tag_extent_by_row(camera, roof_z, tag_size)
     visible = np.flatnonzero(side > 0)
     if visible.size == 0:
         return []
-    levels = np.ones(camera.height, dtype=int)
+    levels = np.ones(camera.height)
     d = 2
     while d <= max_decimate:
         levels[side / d >= min_side_px] = d
         d *= 2
+    levels[(side > 0) & (side < upsample_below_px)] = 0.5
     bands: list[Band] = []
     start = int(visible[0])
     for r in range(start + 1, camera.height + 1):
         if r == camera.height or levels[r] != levels[start]:
             top, bottom = (int(np.ceil(0.6 * extent[i])) + 4 for i in (start, r - 1))
             box = Box(0, max(0, start - top), camera.width, min(camera.height, r + bottom))
-            bands.append(Band(box, int(levels[start])))
+            level = float(levels[start])
+            bands.append(Band(box, max(level, 1.0), 2 if level < 1 else 1))
             start = r
     return bands

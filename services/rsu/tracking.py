@@ -16,10 +16,12 @@ SPEED_MARGIN = 1.2
 
 @dataclass
 class TrackSettings:
-    base_radius_m: float = 0.25  # fix error plus the tag plate's own margin
+    base_radius_m: float = 0.08  # fix error and body flex; the crop adds its own pixel padding
+    velocity_error_mps: float = 1.0  # what two noisy fixes 0.1 s apart may get wrong
     max_accel_mps2: float = 3.0  # emergency braking of a city bus
     max_yaw_rate: float = 0.6  # rad/s: a tight turn at low speed
-    z_margin_m: float = 0.2  # roof bounce and tyre/suspension spread
+    z_margin_m: float = 0.12  # roof bounce around the last measured roof height
+    velocity_smoothing: float = 0.5  # weight of the newest velocity from consecutive fixes
     lost_after_misses: int = 3  # frames without any tag before falling back to acquisition
 
 
@@ -59,7 +61,8 @@ class VehicleTrack:
             if speed > cap:  # a noisy pair of fixes must not throw the next region off
                 v[:2] *= cap / speed
             v[2] = np.clip(v[2], -self.settings.max_yaw_rate, self.settings.max_yaw_rate)
-            self.velocity = v
+            a = self.settings.velocity_smoothing
+            self.velocity = v if self.velocity is None else a * v + (1 - a) * self.velocity
         self.pose, self.t_ns, self.misses = pose, t_ns, 0
 
     def miss(self) -> None:
@@ -82,6 +85,6 @@ class VehicleTrack:
         else:
             vx, vy, w = self.velocity
             x, y, yaw = x + vx * dt, y + vy * dt, yaw + w * dt
-            radius = s.base_radius_m + 0.5 * s.max_accel_mps2 * dt ** 2 + 1.0 * dt  # 1 m/s velocity error
-            yaw_margin = 0.03 + 0.3 * dt
+            radius = s.base_radius_m + s.velocity_error_mps * dt + 0.5 * s.max_accel_mps2 * dt ** 2
+            yaw_margin = 0.01 + 0.2 * dt
         return PosePrediction(x, y, float(wrap_angle(yaw)), z, radius, yaw_margin, s.z_margin_m)
