@@ -1,0 +1,32 @@
+"""toptag's wire contract: messages (pydantic, versioned), key expressions, and the codec.
+
+    from protocol import keys, codec, PoseFix
+    payload = codec.encode(fix)
+    fix = codec.decode(payload, PoseFix, key=sample_key)
+"""
+from protocol import codec, keys
+from protocol.codec import ProtocolError, decode, decode_any, encode
+from protocol.messages import (
+    MESSAGE_TYPES,
+    PROTOCOL_VERSION,
+    ActiveSessions,
+    Approach,
+    ClockInfo,
+    Frame,
+    FusedPose,
+    FusionHealth,
+    GroundTruth,
+    Imu,
+    Leave,
+    Message,
+    PoseFix,
+    RsuStatus,
+    check_id,
+    wrap_angle,
+)
+
+__all__ = [
+    "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "Frame", "FusedPose",
+    "FusionHealth", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuStatus",
+    "check_id", "codec", "decode", "decode_any", "encode", "keys", "wrap_angle",
+]

@@ -11,6 +11,7 @@ import sys
 # command words -> "module:function"; each function takes argv (list[str]) and returns an exit code.
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
+    ("router",): ("services.router:main", "Zenoh router for the toptag services"),
     ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),

@@ -1,0 +1,207 @@
+"""The one place where toptag messages become bytes and back.
+
+- Frame: a 16-byte binary prefix, a compact JSON header, then the raw image bytes (no base64):
+
+      offset 0  4 bytes  magic b"TTFR"
+      offset 4  uint32   header length H (big endian)
+      offset 8  uint64   image length N (big endian)
+      offset 16 H bytes  UTF-8 JSON header (every Frame field but ``image``; same checks as any message)
+      offset 16+H  N bytes  image
+
+- Every other message: compact UTF-8 JSON from pydantic (``model_dump_json``).
+
+``decode`` raises ProtocolError, whose str() is one line naming the problem (wrong version, malformed
+JSON, missing field, bad frame prefix...) and whose ``reason`` is a short code for counters.
+"""
+from __future__ import annotations
+
+import json
+import struct
+from typing import TypeVar
+
+from pydantic import ValidationError
+
+from protocol import keys as _keys
+from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, Frame, Message
+from toptag.inputs import describe_validation_error
+
+FRAME_MAGIC = b"TTFR"
+_FRAME_PREFIX = struct.Struct(">4sIQ")
+FRAME_PREFIX_SIZE = _FRAME_PREFIX.size  # 16
+MAX_FRAME_HEADER = 64 * 1024
+WIRE = {"wire": True}  # validation context: version and type must be on the wire
+
+M = TypeVar("M", bound=Message)
+
+# reason codes
+R_EMPTY, R_UTF8, R_JSON, R_OBJECT, R_VERSION, R_TYPE, R_FIELD, R_FRAME, R_KEY = (
+    "empty", "utf8", "json", "not_object", "version", "type", "field", "frame", "key")
+
+
+class ProtocolError(ValueError):
+    """A payload is not a valid message of the expected type. str(e) is one line."""
+
+    def __init__(self, message: str, reason: str, msg_type: str = ""):
+        super().__init__(message)
+        self.reason = reason
+        self.msg_type = msg_type
+
+
+def _as_bytes(payload) -> bytes | memoryview:
+    if isinstance(payload, (bytes, bytearray, memoryview)):
+        return payload
+    to_bytes = getattr(payload, "to_bytes", None)  # zenoh.ZBytes
+    if to_bytes is not None:
+        return to_bytes()
+    raise TypeError(f"payload must be bytes-like or zenoh.ZBytes, not {type(payload).__name__}")
+
+
+# ---- encode -----------------------------------------------------------------------------------
+
+def encode(msg: Message) -> bytes:
+    """Serialise a message for the wire."""
+    if not isinstance(msg, Message):
+        raise TypeError(f"encode() takes a protocol message, not {type(msg).__name__}")
+    if isinstance(msg, Frame):
+        header = msg.model_dump_json().encode()
+        return b"".join((_FRAME_PREFIX.pack(FRAME_MAGIC, len(header), len(msg.image)), header, msg.image))
+    return msg.model_dump_json().encode()
+
+
+# ---- decode -----------------------------------------------------------------------------------
+
+def decode(payload, expected_type: type[M], *, key: str | None = None) -> M:
+    """Parse a payload as ``expected_type``; if ``key`` (the key the sample came on) is given, also check
+    that the ids in the key match the message's. Raises ProtocolError."""
+    data = _as_bytes(payload)
+    name = expected_type.__name__
+    if expected_type is Frame:
+        msg = _decode_frame(data)
+    else:
+        if len(data) == 0:
+            raise ProtocolError(f"{name}: empty payload", R_EMPTY, name)
+        if bytes(data[:4]) == FRAME_MAGIC:
+            raise ProtocolError(f"{name}: got a binary frame payload", R_TYPE, name)
+        if isinstance(data, memoryview):
+            data = data.tobytes()
+        try:
+            msg = expected_type.model_validate_json(data, context=WIRE)
+        except ValidationError as e:
+            _diagnose_json(data, expected_type, e)
+            raise AssertionError("unreachable")  # _diagnose_json always raises
+    if key is not None:
+        check_key(msg, key)
+    return msg  # type: ignore[return-value]
+
+
+def _parse_object(data, name: str) -> dict:
+    """UTF-8 -> JSON -> dict, or a ProtocolError naming which step failed."""
+    try:
+        text = bytes(data).decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ProtocolError(f"{name}: payload is not UTF-8 (byte {e.start})", R_UTF8, name) from None
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ProtocolError(f"{name}: malformed JSON at line {e.lineno} column {e.colno}: {e.msg}",
+                            R_JSON, name) from None
+    if not isinstance(obj, dict):
+        raise ProtocolError(f"{name}: expected a JSON object, got {type(obj).__name__}", R_OBJECT, name)
+    return obj
+
+
+def _diagnose_json(data, expected_type: type[Message], err: ValidationError | None):
+    """Turn a failed validation into the most useful one-line ProtocolError."""
+    name = expected_type.__name__
+    obj = _parse_object(data, name)
+    if "version" not in obj:
+        raise ProtocolError(f"{name}: missing field 'version'", R_VERSION, name)
+    if type(obj["version"]) is not int or obj["version"] != PROTOCOL_VERSION:
+        raise ProtocolError(f"{name}: wrong protocol version {obj['version']!r} "
+                            f"(this build speaks {PROTOCOL_VERSION})", R_VERSION, name)
+    if obj.get("type") != expected_type.TYPE:
+        got = obj.get("type")
+        raise ProtocolError(f"{name}: wrong message type {got!r} (expected {expected_type.TYPE!r})"
+                            if got is not None else f"{name}: missing field 'type'", R_TYPE, name)
+    if err is None:
+        try:
+            expected_type.model_validate(obj, context=WIRE)
+            return
+        except ValidationError as e:
+            err = e
+    raise ProtocolError(f"{name}: {_describe(err)}", R_FIELD, name) from None
+
+
+def _describe(e: ValidationError) -> str:
+    """describe_validation_error, with 'Field required' spelled as 'missing field'."""
+    first = e.errors()[0]
+    if first.get("type") == "missing" and e.error_count() == 1:
+        return "missing field '" + ".".join(str(x) for x in first["loc"]) + "'"
+    return describe_validation_error(e)
+
+
+def _decode_frame(data) -> Frame:
+    n = len(data)
+    if n < FRAME_PREFIX_SIZE:
+        raise ProtocolError(f"Frame: payload of {n} bytes is shorter than the {FRAME_PREFIX_SIZE}-byte prefix",
+                            R_FRAME, "Frame")
+    magic, hlen, ilen = _FRAME_PREFIX.unpack_from(data, 0)
+    if magic != FRAME_MAGIC:
+        raise ProtocolError(f"Frame: bad magic {bytes(magic)!r} (expected {FRAME_MAGIC!r})", R_FRAME, "Frame")
+    if hlen > MAX_FRAME_HEADER:
+        raise ProtocolError(f"Frame: header length {hlen} exceeds {MAX_FRAME_HEADER}", R_FRAME, "Frame")
+    expected = FRAME_PREFIX_SIZE + hlen + ilen
+    if n < expected:
+        raise ProtocolError(f"Frame: truncated payload ({n} of {expected} bytes; image {ilen} bytes)",
+                            R_FRAME, "Frame")
+    if n > expected:
+        raise ProtocolError(f"Frame: {n - expected} trailing bytes after the image", R_FRAME, "Frame")
+    view = memoryview(data)
+    header = view[FRAME_PREFIX_SIZE:FRAME_PREFIX_SIZE + hlen]
+    try:
+        head = json.loads(bytes(header).decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ProtocolError(f"Frame: header is not UTF-8 (byte {e.start})", R_UTF8, "Frame") from None
+    except json.JSONDecodeError as e:
+        raise ProtocolError(f"Frame: malformed header JSON at column {e.colno}: {e.msg}", R_JSON, "Frame") from None
+    if not isinstance(head, dict):
+        raise ProtocolError(f"Frame: header must be a JSON object, got {type(head).__name__}", R_OBJECT, "Frame")
+    if "image" in head:
+        raise ProtocolError("Frame: header must not contain 'image'", R_FIELD, "Frame")
+    head["image"] = bytes(view[FRAME_PREFIX_SIZE + hlen:])
+    try:
+        return Frame.model_validate(head, context=WIRE)
+    except ValidationError as e:
+        _diagnose_json(bytes(header), Frame, e)
+        raise AssertionError("unreachable")
+
+
+def decode_any(payload) -> Message:
+    """Decode a payload of any toptag type (dispatch on the ``type`` field; frames by their magic)."""
+    data = _as_bytes(payload)
+    if bytes(data[:4]) == FRAME_MAGIC:
+        return _decode_frame(data)
+    obj = _parse_object(data, "message")
+    t = obj.get("type")
+    cls = MESSAGE_TYPES.get(t) if isinstance(t, str) else None
+    if cls is None:
+        raise ProtocolError(f"message: unknown message type {t!r}" if t is not None
+                            else "message: missing field 'type'", R_TYPE, "message")
+    return decode(data, cls)
+
+
+def check_key(msg: Message, key: str) -> None:
+    """Raise ProtocolError if an id in the toptag key differs from the message's (e.g. a fix for bus A
+    published on bus B's key). Keys that are not toptag keys are not checked."""
+    try:
+        parsed = _keys.parse(str(key))
+    except _keys.KeyExprError:
+        return
+    for name, value in parsed.ids.items():
+        field = _keys.ID_FIELDS.get(name)
+        if field is None or not hasattr(msg, field):
+            continue
+        actual = getattr(msg, field)
+        if actual != value:
+            raise ProtocolError(f"{type(msg).__name__}: {field} {actual!r} does not match key {key!r}",
+                                R_KEY, type(msg).__name__)

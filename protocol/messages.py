@@ -1,0 +1,336 @@
+"""The toptag wire messages (protocol version 1).
+
+Every message is a frozen pydantic model carrying ``version`` (the protocol version) and ``type`` (its
+wire name). Units follow SPEC.md: metres, radians, timestamps and durations in integer nanoseconds
+(``*_ns``; timestamps since the Unix epoch). Yaw is wrapped to (-pi, pi] on the way in.
+
+Where a V2X perception message (ETSI CPM, SAE J3224 SDSM) has an equivalent, the docstrings name it:
+``rsu_id`` is the sender's station id / sourceID, ``bus_id`` the perceived object id, ``capture_time_ns``
+the measurement time, ``publish_time_ns`` the generation (reference) time, their difference the
+measurement delta time, and ``covariance`` replaces the CPM confidence fields.
+
+Build messages with keyword arguments; ``version`` and ``type`` fill themselves. Encode and decode them
+only through :mod:`protocol.codec`.
+"""
+from __future__ import annotations
+
+import math
+from typing import Annotated, ClassVar, Literal
+
+import numpy as np
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from toptag.vehicle import VehicleFile
+
+PROTOCOL_VERSION = 1
+
+# Characters an id may not contain: they are key-expression syntax in Zenoh ('/' separates chunks,
+# '*' and '$' are wildcards, '?' and '#' are reserved for selectors).
+FORBIDDEN_ID_CHARS = "/*$?#"
+MAX_ID_LENGTH = 64
+
+
+def check_id(value: str) -> str:
+    """Return ``value`` if it can be one chunk of a key expression, else raise ValueError saying why."""
+    if not isinstance(value, str):
+        raise ValueError(f"id must be a string, got {type(value).__name__}")
+    if not value:
+        raise ValueError("id must not be empty")
+    if len(value) > MAX_ID_LENGTH:
+        raise ValueError(f"id longer than {MAX_ID_LENGTH} characters")
+    bad = sorted({c for c in value if c in FORBIDDEN_ID_CHARS})
+    if bad:
+        raise ValueError(f"id {value!r} contains forbidden character(s) {' '.join(bad)}")
+    if any(c.isspace() or not c.isprintable() for c in value):
+        raise ValueError(f"id {value!r} contains whitespace or control characters")
+    return value
+
+
+Id = Annotated[str, AfterValidator(check_id)]
+TimeNs = Annotated[int, Field(ge=0, description="integer nanoseconds since the Unix epoch")]
+DurationNs = Annotated[int, Field(ge=0, description="integer nanoseconds")]
+Count = Annotated[int, Field(ge=0)]
+
+
+def wrap_angle(a: float) -> float:
+    """Wrap an angle to (-pi, pi]."""
+    w = math.remainder(a, 2.0 * math.pi)  # in [-pi, pi]
+    return math.pi if w == -math.pi else w
+
+
+def _check_covariance(v: list[list[float]]) -> list[list[float]]:
+    if len(v) != 3 or any(len(row) != 3 for row in v):
+        raise ValueError("must be a 3x3 matrix")
+    c = np.asarray(v, dtype=float)
+    if not np.all(np.isfinite(c)):
+        raise ValueError("must be finite")
+    scale = max(1.0, float(np.max(np.abs(c))))
+    if np.max(np.abs(c - c.T)) > 1e-9 * scale:
+        raise ValueError("must be symmetric")
+    if np.min(np.linalg.eigvalsh(c)) < -1e-9 * scale:
+        raise ValueError("must be positive semi-definite")
+    return v
+
+
+Yaw = Annotated[float, AfterValidator(wrap_angle), Field(description="rad, wrapped to (-pi, pi]")]
+Covariance3 = Annotated[list[list[float]], AfterValidator(_check_covariance),
+                        Field(description="3x3 covariance of (x [m], y [m], yaw [rad]), row-major")]
+
+
+class Message(BaseModel):
+    """Base of every wire message: a version and a type tag, strict fields, finite numbers."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    TYPE: ClassVar[str] = ""
+    version: int = Field(default=PROTOCOL_VERSION, strict=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _wire_header(cls, data, info: ValidationInfo):
+        # On the wire (codec passes context {"wire": True}) version and type must be present;
+        # in Python they default.
+        if info.context and info.context.get("wire") and isinstance(data, dict):
+            for f in ("version", "type"):
+                if f not in data:
+                    raise ValueError(f"missing field '{f}'")
+        return data
+
+    @field_validator("version")
+    @classmethod
+    def _version(cls, v: int) -> int:
+        if v != PROTOCOL_VERSION:
+            raise ValueError(f"wrong protocol version {v} (this build speaks {PROTOCOL_VERSION})")
+        return v
+
+
+# ---- sessions ---------------------------------------------------------------------------------
+
+ClockSource = Literal["system", "ntp", "ptp", "gnss", "sim"]
+
+
+class ClockInfo(BaseModel):
+    """How the sender's clock is disciplined, so the receiver can judge whether timestamps compare."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    source: ClockSource = "system"
+    sync_uncertainty_ns: DurationNs | None = Field(
+        default=None, description="bound on |this clock - reference|, if known")
+
+
+class Approach(Message):
+    """A bus announces that it approaches an intersection, with its code bag (the vehicle file).
+
+    Published on keys.approach(intersection_id, bus_id); may be repeated (seq increments)."""
+
+    TYPE: ClassVar[str] = "approach"
+    type: Literal["approach"] = "approach"
+    bus_id: Id
+    intersection_id: Id
+    vehicle: VehicleFile
+    reference_time_ns: TimeNs = Field(description="bus clock when the message was generated")
+    clock: ClockInfo = ClockInfo()
+    seq: Count = 0
+
+    @model_validator(mode="after")
+    def _bus_matches_vehicle(self) -> Approach:
+        if self.vehicle.id != self.bus_id:
+            raise ValueError(f"vehicle.id {self.vehicle.id!r} differs from bus_id {self.bus_id!r}")
+        return self
+
+
+class Leave(Message):
+    """A bus has left the intersection: RSUs stop working for it. On keys.leave(intersection, bus)."""
+
+    TYPE: ClassVar[str] = "leave"
+    type: Literal["leave"] = "leave"
+    bus_id: Id
+    intersection_id: Id
+    reference_time_ns: TimeNs
+    reason: str | None = Field(default=None, max_length=200)
+
+
+class ActiveSessions(Message):
+    """Reply to a query on keys.sessions(intersection, ...): the approaches currently active there.
+
+    A bus answers for itself (one entry); an aggregator may answer for many. A querier merges replies."""
+
+    TYPE: ClassVar[str] = "active_sessions"
+    type: Literal["active_sessions"] = "active_sessions"
+    intersection_id: Id
+    responder_id: Id
+    reference_time_ns: TimeNs
+    sessions: list[Approach] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _same_intersection(self) -> ActiveSessions:
+        for a in self.sessions:
+            if a.intersection_id != self.intersection_id:
+                raise ValueError(f"sessions: approach of {a.bus_id!r} is for intersection "
+                                 f"{a.intersection_id!r}, not {self.intersection_id!r}")
+        return self
+
+
+# ---- RSU -> bus -------------------------------------------------------------------------------
+
+class PoseFix(Message):
+    """One RSU's estimate of one bus's pose in the world frame at the frame's capture time.
+
+    CPM/SDSM mapping: rsu_id = station id / sourceID, bus_id = object id, capture_time_ns = measurement
+    time, publish_time_ns = generation (reference) time, measurement_delta_ns = their difference."""
+
+    TYPE: ClassVar[str] = "pose_fix"
+    type: Literal["pose_fix"] = "pose_fix"
+    bus_id: Id
+    rsu_id: Id
+    intersection_id: Id
+    capture_time_ns: TimeNs = Field(description="RSU clock at frame exposure: the time the pose holds")
+    publish_time_ns: TimeNs = Field(description="RSU clock when the fix was sent")
+    x: float
+    y: float
+    z: float = Field(description="tag plane (roof) height, m")
+    yaw: Yaw
+    covariance: Covariance3
+    method: str = Field(min_length=1, max_length=32, description="solver, e.g. 'bas', 'h_opt', 's_opt'")
+    tags_used: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
+    reprojection_rms_px: float = Field(ge=0)
+    frame_seq: Count
+
+    @property
+    def measurement_delta_ns(self) -> int:
+        """Processing delay at the RSU (publish - capture), the CPM measurementDeltaTime analogue."""
+        return self.publish_time_ns - self.capture_time_ns
+
+    def covariance_matrix(self) -> np.ndarray:
+        return np.asarray(self.covariance, dtype=float)
+
+
+class RsuStatus(Message):
+    """RSU heartbeat on keys.rsu_status(rsu_id). Counters are cumulative since ``started_ns``."""
+
+    TYPE: ClassVar[str] = "rsu_status"
+    type: Literal["rsu_status"] = "rsu_status"
+    rsu_id: Id
+    intersection_id: Id
+    reference_time_ns: TimeNs
+    started_ns: TimeNs
+    active_buses: list[Id] = Field(default_factory=list)
+    frames_received: Count = 0
+    frames_processed: Count = 0
+    frames_skipped: Count = 0
+    fixes_published: Count = 0
+    messages_rejected: Count = 0
+    detection_ns_mean: DurationNs | None = None
+    detection_ns_max: DurationNs | None = None
+    clock: ClockInfo = ClockInfo()
+
+
+# ---- camera -----------------------------------------------------------------------------------
+
+FrameEncoding = Literal["jpeg", "png", "gray8", "bgr8", "rgb8"]
+RAW_CHANNELS = {"gray8": 1, "bgr8": 3, "rgb8": 3}
+
+
+class Frame(Message):
+    """A camera image on keys.frame(rsu_id). On the wire: binary prefix + JSON header + raw image bytes
+    (see protocol.codec); ``image`` never goes through JSON."""
+
+    TYPE: ClassVar[str] = "frame"
+    type: Literal["frame"] = "frame"
+    rsu_id: Id
+    capture_time_ns: TimeNs
+    seq: Count
+    encoding: FrameEncoding
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    image: bytes = Field(exclude=True, repr=False)
+
+    @model_validator(mode="after")
+    def _raw_size(self) -> Frame:
+        ch = RAW_CHANNELS.get(self.encoding)
+        if ch is not None and len(self.image) != self.width * self.height * ch:
+            raise ValueError(f"image: {self.encoding} {self.width}x{self.height} needs "
+                             f"{self.width * self.height * ch} bytes, got {len(self.image)}")
+        if not self.image:
+            raise ValueError("image: empty")
+        return self
+
+
+# ---- bus sensors, truth, fusion ---------------------------------------------------------------
+
+class Imu(Message):
+    """One IMU/odometry sample of a bus (vehicle frame: x forward, y left, z up) on keys.imu(bus_id)."""
+
+    TYPE: ClassVar[str] = "imu"
+    type: Literal["imu"] = "imu"
+    bus_id: Id
+    t_ns: TimeNs
+    gyro_x: float = 0.0
+    gyro_y: float = 0.0
+    gyro_z: float = Field(description="yaw rate, rad/s")
+    accel_x: float = 0.0
+    accel_y: float = 0.0
+    accel_z: float = 0.0
+    wheel_speed: float | None = Field(default=None, description="m/s, from wheel odometry")
+    seq: Count | None = None
+
+
+class GroundTruth(Message):
+    """The true state of one bus (simulator or survey-grade reference) on keys.ground_truth(bus_id)."""
+
+    TYPE: ClassVar[str] = "ground_truth"
+    type: Literal["ground_truth"] = "ground_truth"
+    bus_id: Id
+    t_ns: TimeNs
+    x: float
+    y: float
+    z: float = 0.0
+    yaw: Yaw
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+
+
+class FusionHealth(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    accepted_fixes: Count = 0
+    rejected_fixes: Count = 0
+    since_last_fix_ns: DurationNs | None = Field(
+        default=None, description="t_ns minus the capture time of the last accepted fix; None before any")
+    last_fix_delay_ns: DurationNs | None = Field(
+        default=None, description="arrival minus capture time of the last accepted fix")
+    last_fix_rsu: Id | None = None
+
+
+class FusedPose(Message):
+    """The bus's fused (IMU + RSU fixes) pose at t_ns, on keys.fused_pose(bus_id)."""
+
+    TYPE: ClassVar[str] = "fused_pose"
+    type: Literal["fused_pose"] = "fused_pose"
+    bus_id: Id
+    t_ns: TimeNs
+    x: float
+    y: float
+    yaw: Yaw
+    speed: float = 0.0
+    yaw_rate: float = 0.0
+    covariance: Covariance3
+    health: FusionHealth = FusionHealth()
+
+    def covariance_matrix(self) -> np.ndarray:
+        return np.asarray(self.covariance, dtype=float)
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    m.TYPE: m for m in (Approach, Leave, ActiveSessions, PoseFix, RsuStatus, Frame, Imu, GroundTruth,
+                        FusedPose)
+}

@@ -1,0 +1,208 @@
+"""Shared test helpers: free ports, real zenoh sessions (peer, multicast scouting off, explicit
+tcp/127.0.0.1 endpoints), and a process launcher that stops every process it started, by PID."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _free_port() -> int:
+    """A TCP port the OS just handed out on 127.0.0.1 (free at the time of the call)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def free_port():
+    """free_port() -> int."""
+    return _free_port
+
+
+def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout
+    while True:
+        if predicate():
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(interval)
+
+
+# ---- zenoh sessions ---------------------------------------------------------------------------
+
+@pytest.fixture
+def zenoh_session():
+    """zenoh_session(mode="peer", listen=[...], connect=[...]) -> zenoh.Session; all closed at teardown."""
+    from services.common import open_session
+
+    sessions = []
+
+    def make(mode: str = "peer", listen=(), connect=(), **extra):
+        s = open_session(mode=mode, listen=list(listen), connect=list(connect), multicast_scouting=False,
+                         extra=extra or None)
+        sessions.append(s)
+        return s
+
+    yield make
+    for s in reversed(sessions):
+        try:
+            s.close()
+        except Exception:
+            pass
+
+
+@pytest.fixture
+def peer_pair(zenoh_session, free_port):
+    """Two peer sessions joined over tcp/127.0.0.1:<free port>: (listener, connector)."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    a = zenoh_session("peer", listen=[ep])
+    b = zenoh_session("peer", connect=[ep])
+    assert wait_until(lambda: len(b.info.peers_zid()) > 0, 5), "peers did not connect"
+    return a, b
+
+
+# ---- processes --------------------------------------------------------------------------------
+
+def clean_env(extra: dict | None = None) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("TOPTAG_ZENOH_", "ZENOH_"))}
+    env["PYTHONUNBUFFERED"] = "1"
+    env.update(extra or {})
+    return env
+
+
+class Launched:
+    def __init__(self, proc: subprocess.Popen, log_path: Path):
+        self.proc = proc
+        self.pid = proc.pid
+        self.log_path = log_path
+
+    def output(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")
+        except FileNotFoundError:
+            return ""
+
+    def wait_for(self, text: str, timeout: float = 15.0) -> bool:
+        """Wait until ``text`` appears in the process's combined stdout/stderr (False if it exits or
+        the timeout passes first)."""
+        def seen():
+            return text in self.output() or self.proc.poll() is not None
+        wait_until(seen, timeout, 0.02)
+        return text in self.output()
+
+    def stop(self, sig=signal.SIGTERM, timeout: float = 5.0) -> int:
+        """Send ``sig`` to this PID, wait; SIGKILL if it does not exit. Returns the exit code."""
+        if self.proc.poll() is None:
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                pass
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.kill(self.pid, signal.SIGKILL)
+                self.proc.wait(5)
+        return self.proc.returncode
+
+
+@pytest.fixture
+def launch(tmp_path):
+    """launch(args, env=None, ready=None, timeout=15) -> Launched. ``args`` follow sys.executable
+    (e.g. ["-m", "services.router", ...]). If ``ready`` is given, wait for that text in the output.
+    Every launched process is stopped by PID at teardown (SIGTERM, then SIGKILL)."""
+    started: list[Launched] = []
+
+    def start(args, env: dict | None = None, ready: str | None = None, timeout: float = 15.0) -> Launched:
+        log_path = tmp_path / f"proc-{len(started)}.log"
+        with open(log_path, "wb") as out:
+            proc = subprocess.Popen([sys.executable, *args], cwd=REPO, env=clean_env(env), stdout=out,
+                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        p = Launched(proc, log_path)
+        started.append(p)
+        if ready is not None and not p.wait_for(ready, timeout):
+            raise AssertionError(f"process {args} not ready ({ready!r} not seen); exit code "
+                                 f"{proc.poll()}; output:\n{p.output()[-2000:]}")
+        return p
+
+    yield start
+    for p in reversed(started):
+        p.stop()
+
+
+@pytest.fixture
+def router(launch, free_port):
+    """A real `python -m services.router` subprocess on tcp/127.0.0.1:<free port>; yields its endpoint."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    proc = launch(["-m", "services.router", "--listen", ep], ready="router listening on")
+    yield ep
+    proc.stop()
+
+
+# ---- sample messages --------------------------------------------------------------------------
+
+def make_samples() -> dict:
+    """One valid instance of every protocol message type, keyed by type name."""
+    import json
+
+    from protocol import (
+        ActiveSessions,
+        Approach,
+        ClockInfo,
+        Frame,
+        FusedPose,
+        FusionHealth,
+        GroundTruth,
+        Imu,
+        Leave,
+        PoseFix,
+        RsuStatus,
+    )
+    from toptag.vehicle import VehicleFile
+
+    vehicle = VehicleFile.model_validate(json.loads((REPO / "toptag/data/bus_double.json").read_text()))
+    t = 1_763_700_000_000_000_000
+    cov = [[0.01, 0.001, 0.0], [0.001, 0.02, 0.0], [0.0, 0.0, 0.0004]]
+    approach = Approach(bus_id=vehicle.id, intersection_id="x1", vehicle=vehicle, reference_time_ns=t,
+                        clock=ClockInfo(source="ptp", sync_uncertainty_ns=50_000), seq=3)
+    samples = [
+        approach,
+        Leave(bus_id=vehicle.id, intersection_id="x1", reference_time_ns=t + 9, reason="passed"),
+        ActiveSessions(intersection_id="x1", responder_id=vehicle.id, reference_time_ns=t, sessions=[approach]),
+        PoseFix(bus_id=vehicle.id, rsu_id="rsu-sw", intersection_id="x1", capture_time_ns=t,
+                publish_time_ns=t + 35_000_000, x=3.25, y=-7.5, z=3.02, yaw=0.7, covariance=cov,
+                method="s_opt", tags_used=[3, 7], reprojection_rms_px=0.41, frame_seq=1234),
+        RsuStatus(rsu_id="rsu-sw", intersection_id="x1", reference_time_ns=t, started_ns=t - 10**9,
+                  active_buses=[vehicle.id], frames_received=100, frames_processed=90, frames_skipped=10,
+                  fixes_published=80, messages_rejected=1, detection_ns_mean=21_000_000,
+                  detection_ns_max=40_000_000),
+        Frame(rsu_id="rsu-sw", capture_time_ns=t, seq=7, encoding="jpeg", width=960, height=720,
+              image=b"\xff\xd8" + bytes(range(256)) * 40 + b"\xff\xd9"),
+        Imu(bus_id=vehicle.id, t_ns=t, gyro_x=0.001, gyro_y=-0.002, gyro_z=0.05, accel_x=0.3, accel_y=0.01,
+            accel_z=9.81, wheel_speed=5.5, seq=99),
+        GroundTruth(bus_id=vehicle.id, t_ns=t, x=1.0, y=2.0, z=3.0, yaw=-3.0, speed=5.0, yaw_rate=0.1),
+        FusedPose(bus_id=vehicle.id, t_ns=t, x=1.0, y=2.0, yaw=0.1, speed=5.0, yaw_rate=0.05, covariance=cov,
+                  health=FusionHealth(accepted_fixes=10, rejected_fixes=2, since_last_fix_ns=80_000_000,
+                                      last_fix_delay_ns=35_000_000, last_fix_rsu="rsu-sw")),
+    ]
+    return {type(m).__name__: m for m in samples}
+
+
+def key_for(msg) -> str:
+    """The key a sample message is published on."""
+    from protocol import keys
+    return keys.key_of(msg)
+
+
+@pytest.fixture
+def samples() -> dict:
+    return make_samples()

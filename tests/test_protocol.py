@@ -1,0 +1,292 @@
+"""The wire contract without a network: messages, keys, codec."""
+from __future__ import annotations
+
+import json
+import math
+import struct
+
+import pytest
+import zenoh
+from conftest import key_for, make_samples
+from pydantic import ValidationError
+
+from protocol import (
+    MESSAGE_TYPES,
+    PROTOCOL_VERSION,
+    Approach,
+    Frame,
+    FusedPose,
+    Imu,
+    Leave,
+    PoseFix,
+    ProtocolError,
+    codec,
+    decode,
+    decode_any,
+    encode,
+    keys,
+)
+
+SAMPLES = make_samples()
+
+
+def test_samples_cover_every_message_type():
+    assert set(SAMPLES) == {cls.__name__ for cls in MESSAGE_TYPES.values()}
+
+
+@pytest.mark.parametrize("name", sorted(SAMPLES))
+def test_round_trip(name):
+    msg = SAMPLES[name]
+    payload = encode(msg)
+    assert isinstance(payload, bytes)
+    back = decode(payload, type(msg), key=key_for(msg))
+    assert back == msg
+    assert type(back) is type(msg)
+    assert decode_any(payload) == msg
+    if not isinstance(msg, Frame):
+        obj = json.loads(payload)
+        assert obj["version"] == PROTOCOL_VERSION and obj["type"] == type(msg).TYPE
+        assert b" " not in payload.replace(b'"passed"', b"")  # compact JSON
+
+
+def test_frame_is_header_plus_raw_bytes_without_base64():
+    image = bytes(range(256)) * 4000  # ~1 MB, not valid UTF-8
+    f = Frame(rsu_id="rsu-sw", capture_time_ns=5, seq=1, encoding="jpeg", width=960, height=720, image=image)
+    payload = encode(f)
+    assert payload[:4] == codec.FRAME_MAGIC
+    assert payload.endswith(image)
+    assert len(payload) - len(image) < 200
+    magic, hlen, ilen = struct.unpack_from(">4sIQ", payload)
+    assert ilen == len(image)
+    header = json.loads(payload[16:16 + hlen])
+    assert header["version"] == PROTOCOL_VERSION and header["type"] == "frame" and "image" not in header
+    assert decode(payload, Frame).image == image
+
+
+def test_raw_frame_size_is_checked():
+    Frame(rsu_id="r", capture_time_ns=0, seq=0, encoding="bgr8", width=4, height=2, image=bytes(24))
+    with pytest.raises(ValidationError, match="needs 24 bytes"):
+        Frame(rsu_id="r", capture_time_ns=0, seq=0, encoding="bgr8", width=4, height=2, image=bytes(23))
+
+
+def _fix_payload() -> bytes:
+    return encode(SAMPLES["PoseFix"])
+
+
+def _json_with(**changes) -> bytes:
+    obj = json.loads(_fix_payload())
+    for k, v in changes.items():
+        if v is ...:
+            del obj[k]
+        else:
+            obj[k] = v
+    return json.dumps(obj).encode()
+
+
+BAD_JSON = [
+    # (payload, reason code, text in the one-line message)
+    (b"", "empty", "empty payload"),
+    (b'{"version":1,"type":"pose_f', "json", "malformed JSON"),
+    (b"\xff\xfe\x00", "utf8", "not UTF-8"),
+    (b"[1, 2]", "not_object", "expected a JSON object, got list"),
+    (_json_with(version=2), "version", "wrong protocol version 2 (this build speaks 1)"),
+    (_json_with(version="1"), "version", "wrong protocol version '1'"),
+    (_json_with(version=...), "version", "missing field 'version'"),
+    (_json_with(type="leave"), "type", "wrong message type 'leave' (expected 'pose_fix')"),
+    (_json_with(type=...), "type", "missing field 'type'"),
+    (_json_with(x=...), "field", "missing field 'x'"),
+    (_json_with(x="east"), "field", "x:"),
+    (_json_with(covariance=[[1, 0], [0, 1]]), "field", "covariance"),
+    (_json_with(covariance=[[1, 2, 0], [0, 1, 0], [0, 0, 1]]), "field", "symmetric"),
+    (_json_with(bus_id="bus/17"), "field", "forbidden character"),
+    (_json_with(extra_field=1), "field", "extra_field"),
+    (_json_with(capture_time_ns=-1), "field", "capture_time_ns"),
+    (encode(SAMPLES["Frame"]), "type", "binary frame"),
+]
+
+
+@pytest.mark.parametrize("payload,reason,text", BAD_JSON, ids=[b[2] for b in BAD_JSON])
+def test_bad_json_payloads_are_rejected_with_one_clear_line(payload, reason, text):
+    with pytest.raises(ProtocolError) as ei:
+        decode(payload, PoseFix)
+    e = ei.value
+    assert e.reason == reason
+    assert text in str(e)
+    assert "\n" not in str(e)
+    assert str(e).startswith("PoseFix: ")
+
+
+def _frame_payload() -> bytes:
+    return encode(SAMPLES["Frame"])
+
+
+def _frame_with_header(header: bytes, image: bytes = b"img") -> bytes:
+    return struct.pack(">4sIQ", b"TTFR", len(header), len(image)) + header + image
+
+
+BAD_FRAMES = [
+    (_frame_payload()[:-1], "frame", "truncated payload"),
+    (_frame_payload()[:100], "frame", "truncated payload"),
+    (_frame_payload()[:9], "frame", "shorter than the 16-byte prefix"),
+    (_frame_payload() + b"x", "frame", "1 trailing bytes"),
+    (b"JPEG" + _frame_payload()[4:], "frame", "bad magic"),
+    (struct.pack(">4sIQ", b"TTFR", 10**6, 0), "frame", "header length"),
+    (_frame_with_header(b"{not json"), "json", "malformed header JSON"),
+    (_frame_with_header(json.dumps({"version": 2, "type": "frame"}).encode()), "version",
+     "wrong protocol version 2"),
+    (_frame_with_header(json.dumps({"version": 1, "type": "frame", "rsu_id": "r", "seq": 0, "encoding": "jpeg",
+                                    "width": 4, "height": 2}).encode()), "field",
+     "missing field 'capture_time_ns'"),
+    (_frame_with_header(json.dumps({"version": 1, "type": "frame", "rsu_id": "r", "seq": 0, "encoding": "gray8",
+                                    "width": 4, "height": 2, "capture_time_ns": 1}).encode()), "field",
+     "needs 8 bytes, got 3"),
+]
+
+
+@pytest.mark.parametrize("payload,reason,text", BAD_FRAMES, ids=[b[2] for b in BAD_FRAMES])
+def test_bad_frames_are_rejected(payload, reason, text):
+    with pytest.raises(ProtocolError) as ei:
+        decode(payload, Frame)
+    assert ei.value.reason == reason
+    assert text in str(ei.value) and "\n" not in str(ei.value)
+
+
+def test_decode_accepts_zenoh_bytes_and_memoryview():
+    p = _fix_payload()
+    assert decode(zenoh.ZBytes(p), PoseFix) == SAMPLES["PoseFix"]
+    assert decode(memoryview(p), PoseFix) == SAMPLES["PoseFix"]
+    assert decode(bytearray(_frame_payload()), Frame) == SAMPLES["Frame"]
+
+
+def test_key_check_rejects_ids_that_do_not_match_the_key():
+    fix = SAMPLES["PoseFix"]
+    with pytest.raises(ProtocolError, match="bus_id 'bus-17' does not match key") as ei:
+        decode(encode(fix), PoseFix, key=keys.pose_fix("x1", "bus-18", "rsu-sw"))
+    assert ei.value.reason == "key"
+    with pytest.raises(ProtocolError, match="rsu_id"):
+        decode(encode(SAMPLES["Frame"]), Frame, key=keys.frame("rsu-ne"))
+    decode(encode(fix), PoseFix, key="some/other/key")  # not a toptag key: not checked
+
+
+def test_decode_any_reports_unknown_type():
+    with pytest.raises(ProtocolError, match="unknown message type 'teleport'"):
+        decode_any(b'{"version":1,"type":"teleport"}')
+    with pytest.raises(ProtocolError, match="missing field 'type'"):
+        decode_any(b'{"version":1}')
+
+
+def test_python_construction_fills_version_and_type_but_wire_requires_them():
+    m = Leave(bus_id="b", intersection_id="x1", reference_time_ns=1)
+    assert m.version == PROTOCOL_VERSION and m.type == "leave"
+    with pytest.raises(ValidationError, match="wrong protocol version"):
+        Leave(version=2, bus_id="b", intersection_id="x1", reference_time_ns=1)
+
+
+def test_messages_are_immutable_and_finite():
+    fix = SAMPLES["PoseFix"]
+    with pytest.raises(ValidationError):
+        fix.x = 3.0  # type: ignore[misc]
+    assert fix.model_copy(update={"x": 3.0}).x == 3.0
+    with pytest.raises(ValidationError):
+        Imu(bus_id="b", t_ns=1, gyro_z=math.nan)
+    with pytest.raises(ValidationError):
+        Imu(bus_id="b", t_ns=1, gyro_z=math.inf)
+
+
+def test_yaw_is_wrapped_to_minus_pi_pi():
+    fix = SAMPLES["PoseFix"]
+    assert fix.model_copy(update={"yaw": 4.0}).yaw == 4.0  # model_copy does not validate...
+    d = fix.model_dump()
+    for raw, wrapped in [(4.0, 4.0 - 2 * math.pi), (-math.pi, math.pi), (math.pi, math.pi), (7.0, 7.0 - 2 * math.pi)]:
+        d["yaw"] = raw
+        assert PoseFix.model_validate(d).yaw == pytest.approx(wrapped)
+
+
+def test_covariance_must_be_symmetric_psd():
+    d = SAMPLES["FusedPose"].model_dump()
+    d["covariance"] = [[1, 0, 0], [0, -1, 0], [0, 0, 1]]
+    with pytest.raises(ValidationError, match="positive semi-definite"):
+        FusedPose.model_validate(d)
+
+
+def test_approach_vehicle_must_be_the_bus():
+    a = SAMPLES["Approach"]
+    with pytest.raises(ValidationError, match="differs from bus_id"):
+        Approach(bus_id="bus-99", intersection_id="x1", vehicle=a.vehicle, reference_time_ns=1)
+
+
+def test_pose_fix_measurement_delta():
+    fix = SAMPLES["PoseFix"]
+    assert fix.measurement_delta_ns == fix.publish_time_ns - fix.capture_time_ns == 35_000_000
+
+
+# ---- keys -------------------------------------------------------------------------------------
+
+KEY_TABLE = [
+    (keys.approach("x1", "bus-17"), "toptag/v1/approach/x1/bus-17"),
+    (keys.leave("x1", "bus-17"), "toptag/v1/leave/x1/bus-17"),
+    (keys.pose_fix("x1", "bus-17", "rsu-sw"), "toptag/v1/fix/x1/bus-17/rsu-sw"),
+    (keys.frame("rsu-sw"), "toptag/v1/frame/rsu-sw"),
+    (keys.rsu_status("rsu-sw"), "toptag/v1/status/rsu/rsu-sw"),
+    (keys.imu("bus-17"), "toptag/v1/imu/bus-17"),
+    (keys.ground_truth("bus-17"), "toptag/v1/truth/bus-17"),
+    (keys.fused_pose("bus-17"), "toptag/v1/fused/bus-17"),
+    (keys.alive("x1", "bus-17"), "toptag/v1/alive/x1/bus-17"),
+    (keys.sessions("x1", "bus-17"), "toptag/v1/session/x1/bus-17"),
+    (keys.sessions("x1"), "toptag/v1/session/x1/*"),
+    (keys.pose_fix("x1", "bus-17", rsu=keys.ANY), "toptag/v1/fix/x1/bus-17/*"),
+    (keys.pose_fix(keys.ANY, keys.ANY, keys.ANY), "toptag/v1/fix/*/*/*"),
+]
+
+
+@pytest.mark.parametrize("built,expected", KEY_TABLE, ids=[k[1] for k in KEY_TABLE])
+def test_key_table(built, expected):
+    assert built == expected
+    assert str(zenoh.KeyExpr(built)) == expected  # valid, canonical zenoh key expression
+    assert keys.is_pattern(built) == ("*" in expected)
+    if not keys.is_pattern(built):
+        parsed = keys.parse(built)
+        assert keys.parse(built) == parsed and parsed.kind in keys.LAYOUT
+
+
+def test_wildcard_patterns_match_concrete_keys():
+    pattern = zenoh.KeyExpr(keys.pose_fix("x1", keys.ANY, keys.ANY))
+    assert pattern.intersects(keys.pose_fix("x1", "bus-17", "rsu-ne"))
+    assert not pattern.intersects(keys.pose_fix("x2", "bus-17", "rsu-ne"))
+    assert zenoh.KeyExpr(keys.EVERYTHING).includes(keys.frame("rsu-ne"))
+
+
+def test_key_of_every_message():
+    assert keys.key_of(SAMPLES["PoseFix"]) == "toptag/v1/fix/x1/bus-17/rsu-sw"
+    assert keys.key_of(SAMPLES["Frame"]) == "toptag/v1/frame/rsu-sw"
+    assert keys.key_of(SAMPLES["RsuStatus"]) == "toptag/v1/status/rsu/rsu-sw"
+    assert keys.key_of(SAMPLES["ActiveSessions"]) == "toptag/v1/session/x1/bus-17"
+    for name, msg in SAMPLES.items():
+        k = keys.key_of(msg)
+        assert not keys.is_pattern(k)
+        codec.check_key(msg, k)  # the ids in the key are the message's
+        assert keys.parse(k).kind == ("sessions" if name == "ActiveSessions" else msg.TYPE)
+
+
+def test_parse_round_trips():
+    p = keys.parse("toptag/v1/fix/x1/bus-17/rsu-sw")
+    assert p.kind == "pose_fix" and p.ids == {"intersection": "x1", "bus": "bus-17", "rsu": "rsu-sw"}
+    assert p["rsu"] == "rsu-sw"
+    assert keys.parse(keys.rsu_status("r1")).kind == "rsu_status"
+    for bad in ["toptag/v2/frame/r", "toptag/v1/frame", "toptag/v1/frame/a/b", "toptag/v1/nope/a"]:
+        with pytest.raises(keys.KeyExprError):
+            keys.parse(bad)
+
+
+@pytest.mark.parametrize("bad", ["", "a/b", "*b", "**", "x$", "what?", "#1", "has space", "tab\t", "x" * 65])
+def test_ids_are_validated(bad):
+    with pytest.raises(keys.KeyExprError):
+        keys.frame(bad)
+    with pytest.raises(ValidationError):
+        Leave(bus_id=bad, intersection_id="x1", reference_time_ns=1)
+
+
+def test_only_the_wildcard_chunk_is_allowed_as_pattern():
+    assert keys.frame(keys.ANY) == "toptag/v1/frame/*"
+    with pytest.raises(keys.KeyExprError):
+        keys.frame("**")
