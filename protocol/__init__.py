@@ -15,6 +15,7 @@ from protocol.messages import (
     Frame,
     FusedPose,
     FusionHealth,
+    GnssFix,
     GroundTruth,
     Imu,
     Leave,
@@ -27,6 +28,6 @@ from protocol.messages import (
 
 __all__ = [
     "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "Frame", "FusedPose",
-    "FusionHealth", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuStatus",
+    "FusionHealth", "GnssFix", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuStatus",
     "check_id", "codec", "decode", "decode_any", "encode", "keys", "wrap_angle",
 ]

@@ -12,6 +12,7 @@ an id to build a subscription / query pattern; publishing helpers refuse pattern
 | rsu_status(rsu)                      | toptag/v1/status/rsu/<rsu>                         | RsuStatus      |
 | imu(bus)                             | toptag/v1/imu/<bus>                                | Imu            |
 | ground_truth(bus)                    | toptag/v1/truth/<bus>                              | GroundTruth    |
+| gnss(bus)                            | toptag/v1/gnss/<bus>                               | GnssFix        |
 | fused_pose(bus)                      | toptag/v1/fused/<bus>                              | FusedPose      |
 | alive(intersection, bus)             | toptag/v1/alive/<intersection>/<bus>               | liveliness     |
 | sessions(intersection, bus=ANY)      | toptag/v1/session/<intersection>/<bus>             | ActiveSessions |
@@ -35,6 +36,7 @@ LAYOUT: dict[str, tuple[str, tuple[str, ...]]] = {
     "rsu_status": ("status/rsu", ("rsu",)),
     "imu": ("imu", ("bus",)),
     "ground_truth": ("truth", ("bus",)),
+    "gnss": ("gnss", ("bus",)),
     "fused_pose": ("fused", ("bus",)),
     "alive": ("alive", ("intersection", "bus")),
     "sessions": ("session", ("intersection", "bus")),
@@ -87,6 +89,10 @@ def ground_truth(bus: str) -> str:
     return _build("ground_truth", bus)
 
 
+def gnss(bus: str) -> str:
+    return _build("gnss", bus)
+
+
 def fused_pose(bus: str) -> str:
     return _build("fused_pose", bus)
 
@@ -111,7 +117,7 @@ def key_of(msg) -> str:
         return pose_fix(msg.intersection_id, msg.bus_id, msg.rsu_id)
     if t in ("frame", "rsu_status"):
         return _build(t, msg.rsu_id)
-    if t in ("imu", "ground_truth", "fused_pose"):
+    if t in ("imu", "ground_truth", "gnss", "fused_pose"):
         return _build(t, msg.bus_id)
     if t == "active_sessions":
         return sessions(msg.intersection_id, msg.responder_id)

@@ -299,6 +299,20 @@ class GroundTruth(Message):
     yaw_rate: float = 0.0
 
 
+class GnssFix(Message):
+    """A coarse satellite position of one bus on keys.gnss(bus_id): metres of error, and none at all
+    where buildings and big vehicles shield the sky (the intersection). It tells the bus agent when it
+    approaches an intersection and gives its filter a start-up prior."""
+
+    TYPE: ClassVar[str] = "gnss"
+    type: Literal["gnss"] = "gnss"
+    bus_id: Id
+    t_ns: TimeNs
+    x: float
+    y: float
+    sigma_m: float = Field(gt=0)
+
+
 class FusionHealth(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -332,5 +346,5 @@ class FusedPose(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     m.TYPE: m for m in (Approach, Leave, ActiveSessions, PoseFix, RsuStatus, Frame, Imu, GroundTruth,
-                        FusedPose)
+                        GnssFix, FusedPose)
 }
