@@ -227,7 +227,9 @@ class RsuStatus(Message):
     frames_received: Count = 0
     frames_processed: Count = 0
     frames_skipped: Count = 0
+    frames_with_fix: Count = Field(default=0, description="frames that gave at least one PoseFix")
     fixes_published: Count = 0
+    active_s: float = Field(default=0.0, ge=0, description="seconds with at least one bus in session")
     messages_rejected: Count = 0
     detection_ns_mean: DurationNs | None = None
     detection_ns_max: DurationNs | None = None
@@ -316,6 +318,9 @@ class GnssFix(Message):
 class FusionHealth(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
+    status: Literal["acquiring", "ok", "degraded", "lost"] | None = Field(
+        default=None, description="ok: recent accepted fixes; degraded: none for a while or uncertain; "
+                                  "lost: too long or too uncertain to drive on")
     accepted_fixes: Count = 0
     rejected_fixes: Count = 0
     since_last_fix_ns: DurationNs | None = Field(

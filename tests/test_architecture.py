@@ -7,7 +7,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PURE = ["toptag/camera.py", "toptag/vehicle.py", "toptag/geometry.py", "toptag/detection.py",
         "toptag/solvers", "services/rsu/pipeline.py", "services/rsu/regions.py", "services/rsu/tracking.py",
-        "services/bus/filter.py", "sim/render.py", "sim/motion.py"]
+        "services/bus/filter.py", "services/bus/presence.py", "sim/render.py", "sim/motion.py", "sim/world.py",
+        "sim/scenario.py"]
 
 
 def _python_files(rel):

@@ -11,8 +11,13 @@ import sys
 # command words -> "module:function"; each function takes argv (list[str]) and returns an exit code.
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
+    ("demo",): ("toptag.demo:main", "every service as its own process on a local Zenoh network"),
     ("router",): ("services.router:main", "Zenoh router for the toptag services"),
+    ("rsu",): ("services.rsu.service:main", "RSU service for one camera"),
+    ("bus",): ("services.bus.agent:main", "bus agent: announce, fuse fixes with IMU, publish FusedPose"),
+    ("monitor",): ("services.monitor:main", "live localization quality of a running intersection"),
     ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
+    ("sim", "run"): ("sim.live:main", "live simulator: RSU frames and bus sensors over Zenoh"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),
 }

@@ -146,7 +146,7 @@ class Health:
         """The fields of protocol.messages.FusionHealth."""
         def ns(v):
             return None if not math.isfinite(v) else int(round(v * 1e9))
-        return {"accepted_fixes": self.accepted, "rejected_fixes": self.rejected,
+        return {"status": self.status, "accepted_fixes": self.accepted, "rejected_fixes": self.rejected,
                 "since_last_fix_ns": ns(self.since_last_fix_s), "last_fix_delay_ns": ns(self.last_fix_delay_s),
                 "last_fix_rsu": self.last_fix_source}
 

@@ -63,6 +63,7 @@ class VehicleResult:
     solution: PoseSolution | None
     mode: str  # "tracked" | "acquired" | "searching" | "waiting"
     regions: int = 0
+    observations: list = field(default_factory=list)  # the TagObservations the solution was made from
 
 
 @dataclass
@@ -184,7 +185,7 @@ class RsuPipeline:
                 self.tracks[vid].miss()
             if sol is None and mode != "waiting":
                 mode = "searching"
-            result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0))
+            result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0), obs)
         result.solve_ms = (time.perf_counter() - t1) * 1e3
         return result
 

@@ -1,0 +1,228 @@
+"""`toptag bus`: the bus agent.
+
+Knows the map of intersections. From its position (GNSS when it has one, its fused pose otherwise) it
+announces itself (Approach with its code bag, repeated every second, a liveliness token and an
+answer to session queries) when it enters an intersection's approach radius, and leaves (Leave, token
+withdrawn) when it exits. It fuses its IMU/odometry with the RSUs' PoseFixes, each applied at its
+capture time, and publishes FusedPose at 50 Hz with covariance and health.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+
+from protocol import keys
+from protocol.messages import Approach, ClockInfo, FusedPose, FusionHealth, GnssFix, Imu, Leave, PoseFix
+from services.bus.filter import BusFilter, FilterConfig
+from services.bus.fixes import PoseFix as FilterFix
+from services.bus.presence import IntersectionPresence
+from services.common import (
+    MessageCounters,
+    MessagePublisher,
+    ZenohSetupError,
+    add_zenoh_arguments,
+    declare_alive,
+    open_session,
+    publish,
+    serve_session,
+    subscribe_messages,
+    zenoh_config_from_args,
+)
+from toptag.inputs import InputError
+from toptag.site import IntersectionSpec, MapFile
+from toptag.vehicle import Vehicle
+
+log = logging.getLogger("toptag.bus")
+
+IMU_GAP_RESET_S = 1.0  # without IMU for this long the state cannot be propagated: start afresh
+APPROACH_REPEAT_S = 1.0  # one-shot messages can be lost when routes are new: repeat the announcement
+
+
+class BusAgent:
+    def __init__(self, session, vehicle: Vehicle, map_file: MapFile, fused_hz: float = 50.0,
+                 filter_config: FilterConfig | None = None):
+        self.session = session
+        self.vehicle = vehicle
+        self.bus_id = vehicle.id
+        self.fused_period = 1.0 / fused_hz
+        self.filter_config = filter_config or FilterConfig()
+        self.presence = IntersectionPresence(map_file)
+        self.counters = MessageCounters()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.filter = BusFilter(self.filter_config)
+        self.filter_resets = 0
+        self._last_imu_ns: int | None = None
+        self._gnss: GnssFix | None = None
+        self.fix_latency_ns: list[int] = []
+        self.fixes_received = 0
+        # Session state (one intersection at a time).
+        self._approach: Approach | None = None
+        self._token = None
+        self._queryable = None
+        self._fix_sub = None
+        self._last_announce = 0.0
+        self._fused_pub = MessagePublisher(session, keys.fused_pose(self.bus_id), FusedPose)
+        self._subs = [
+            subscribe_messages(session, keys.imu(self.bus_id), Imu, self._on_imu, self.counters, log),
+            subscribe_messages(session, keys.gnss(self.bus_id), GnssFix, self._on_gnss, self.counters, log),
+        ]
+
+    # ---- inputs (Zenoh threads) ---------------------------------------------------------------
+    def _on_imu(self, m: Imu) -> None:
+        with self._lock:
+            if self._last_imu_ns is not None and (m.t_ns - self._last_imu_ns) * 1e-9 > IMU_GAP_RESET_S:
+                # The vehicle was off (or the stream broke): nothing in the buffer describes it any more.
+                self.filter = BusFilter(self.filter_config)
+                self.filter_resets += 1
+                log.info("IMU gap of %.1f s: filter restarted", (m.t_ns - self._last_imu_ns) * 1e-9)
+            self._last_imu_ns = m.t_ns
+            self.filter.add_imu(m.t_ns, m.gyro_z, m.accel_x, m.accel_y, m.wheel_speed)
+
+    def _on_gnss(self, m: GnssFix) -> None:
+        with self._lock:
+            self._gnss = m
+
+    def _on_fix(self, m: PoseFix) -> None:
+        now = time.time_ns()
+        if m.bus_id != self.bus_id:
+            return
+        with self._lock:
+            self.fixes_received += 1
+            self.fix_latency_ns.append(now - m.capture_time_ns)
+            self.filter.add_fix(FilterFix.from_any(m), arrival_ns=now)
+
+    # ---- position and sessions ------------------------------------------------------------------
+    def position(self, now_ns: int) -> tuple[float, float] | None:
+        """Fused pose when the filter is healthy, else the latest GNSS fix (metres are enough here)."""
+        with self._lock:
+            est = self.filter.estimate(now_ns) if self.filter.initialized else None
+            gnss = self._gnss
+        if est is not None and est.health.status == "ok":
+            return est.x, est.y
+        if gnss is not None and (now_ns - gnss.t_ns) * 1e-9 < 5.0:
+            return gnss.x, gnss.y
+        return None
+
+    def _enter(self, inter: IntersectionSpec) -> None:
+        self._approach = Approach(bus_id=self.bus_id, intersection_id=inter.id, vehicle=self.vehicle.spec,
+                                  reference_time_ns=time.time_ns(), clock=ClockInfo(source="system"), seq=0)
+        self._fix_sub = subscribe_messages(self.session, keys.pose_fix(inter.id, self.bus_id, keys.ANY), PoseFix,
+                                           self._on_fix, self.counters, log)
+        # Queryable and token before the announcement: an RSU that hears the Approach late, or starts
+        # later, finds both.
+        self._queryable = serve_session(self.session, lambda: self._approach, logger=log)
+        self._token = declare_alive(self.session, inter.id, self.bus_id)
+        self._announce()
+        log.info("entered intersection %s: announced with tags %s", inter.id, self.vehicle.tag_ids)
+
+    def _announce(self) -> None:
+        a = self._approach
+        self._approach = a.model_copy(update={"reference_time_ns": time.time_ns(), "seq": a.seq + 1})
+        publish(self.session, keys.approach(a.intersection_id, self.bus_id), self._approach)
+        self._last_announce = time.monotonic()
+
+    def _leave(self, reason: str) -> None:
+        a = self._approach
+        if a is None:
+            return
+        publish(self.session, keys.leave(a.intersection_id, self.bus_id),
+                Leave(bus_id=self.bus_id, intersection_id=a.intersection_id, reference_time_ns=time.time_ns(),
+                      reason=reason))
+        for handle in (self._token, self._queryable, self._fix_sub):
+            try:
+                (handle.close if hasattr(handle, "close") else handle.undeclare)()
+            except Exception:
+                pass
+        self._token = self._queryable = self._fix_sub = self._approach = None
+        log.info("left intersection %s (%s)", a.intersection_id, reason)
+
+    def step(self, now_ns: int) -> None:
+        """Presence, repeated announcements and the fused output, once per output period."""
+        pos = self.position(now_ns)
+        if pos is not None:
+            for event, inter in self.presence.update(*pos):
+                if event == "leave":
+                    self._leave("left the approach radius")
+                else:
+                    self._enter(inter)
+        if self._approach is not None and time.monotonic() - self._last_announce >= APPROACH_REPEAT_S:
+            self._announce()
+        with self._lock:
+            est = self.filter.estimate(now_ns) if self.filter.initialized else None
+        if est is not None:
+            f = est.protocol_fields()
+            self._fused_pub.put(FusedPose(bus_id=self.bus_id, **{**f, "health": FusionHealth(**f["health"])}))
+
+    def run(self, duration: float | None = None) -> None:
+        t_end = None if duration is None else time.monotonic() + duration
+        next_t = time.monotonic()
+        while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):
+            try:
+                self.step(time.time_ns())
+            except Exception as e:  # keep the agent alive; the next step retries
+                log.exception("bus step failed: %s", e)
+            next_t += self.fused_period
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        self._leave("agent stopped")
+        for s in self._subs:
+            s.close()
+        self._fused_pub.close()
+
+    def latency_ms(self) -> dict:
+        lat = np.asarray(self.fix_latency_ns, dtype=float) * 1e-6
+        if lat.size == 0:
+            return {}
+        return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99))}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toptag bus", description=__doc__.split("\n\n")[0])
+    p.add_argument("--vehicle", required=True, help="this bus's vehicle file (its code bag)")
+    p.add_argument("--map", required=True, help="map file of intersections")
+    p.add_argument("--fused-hz", type=float, default=50.0)
+    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    add_zenoh_arguments(p)
+    return p
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+    try:
+        vehicle = Vehicle.load(args.vehicle)
+        map_file = MapFile.load(args.map)
+        keys.imu(vehicle.id)
+    except (InputError, ValueError) as e:
+        print(f"toptag bus: {e}", file=sys.stderr)
+        return 2
+    try:
+        session = open_session(zenoh_config_from_args(args))
+    except ZenohSetupError as e:
+        print(f"toptag bus: {e}", file=sys.stderr)
+        return 1
+    agent = BusAgent(session, vehicle, map_file, args.fused_hz)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: agent.stop())
+    log.info("bus %s ready (%d intersections known)", vehicle.id, len(map_file.intersections))
+    try:
+        agent.run(args.duration)
+    finally:
+        agent.close()
+        session.close()
+        log.info("bus %s stopped: %d fixes received, latency %s", vehicle.id, agent.fixes_received,
+                 {k: round(v, 1) for k, v in agent.latency_ms().items()})
+    return 0

@@ -1,0 +1,253 @@
+"""`toptag monitor`: watches a running intersection and tells how well it localizes its buses.
+
+Listens to RSU heartbeats, every PoseFix, the simulator's ground truth and each bus's FusedPose, and
+compares them: fix error at the fix's capture time, fused error at the fused pose's time, and the
+capture-to-arrival latency of fixes. Prints a live table; `--report FILE` writes the summary as JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import bisect
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections import defaultdict, deque
+from pathlib import Path
+
+import numpy as np
+
+from protocol import keys
+from protocol.messages import FusedPose, GroundTruth, PoseFix, RsuStatus
+from services.common import (
+    MessageCounters,
+    ZenohSetupError,
+    add_zenoh_arguments,
+    open_session,
+    subscribe_messages,
+    zenoh_config_from_args,
+)
+
+log = logging.getLogger("toptag.monitor")
+TRUTH_KEEP_S = 30.0
+
+
+class TruthTrack:
+    """Recent ground truth of one bus, interpolated at any time it covers."""
+
+    def __init__(self):
+        self.t: list[int] = []
+        self.xyyaw: list[tuple[float, float, float]] = []
+
+    def add(self, m: GroundTruth) -> None:
+        if self.t and m.t_ns <= self.t[-1]:
+            return
+        self.t.append(m.t_ns)
+        self.xyyaw.append((m.x, m.y, m.yaw))
+        if (self.t[-1] - self.t[0]) * 1e-9 > 2 * TRUTH_KEEP_S:
+            cut = bisect.bisect_left(self.t, self.t[-1] - int(TRUTH_KEEP_S * 1e9))
+            del self.t[:cut], self.xyyaw[:cut]
+
+    def at(self, t_ns: int) -> tuple[float, float, float] | None:
+        i = bisect.bisect_left(self.t, t_ns)
+        if i == 0 or i == len(self.t):
+            return self.xyyaw[0] if self.t and self.t[0] == t_ns else None
+        t0, t1 = self.t[i - 1], self.t[i]
+        if (t1 - t0) * 1e-9 > 0.5:  # the bus was away: no truth in between
+            return None
+        w = (t_ns - t0) / (t1 - t0)
+        (x0, y0, a0), (x1, y1, a1) = self.xyyaw[i - 1], self.xyyaw[i]
+        da = (a1 - a0 + np.pi) % (2 * np.pi) - np.pi
+        return x0 + w * (x1 - x0), y0 + w * (y1 - y0), a0 + w * da
+
+
+class ErrorStats:
+    """Running RMS / max of errors, and the recent values for percentiles (bounded memory)."""
+
+    def __init__(self, keep: int = 20000):
+        self.n, self.sumsq, self.max, self.last = 0, 0.0, None, None
+        self.recent: deque = deque(maxlen=keep)
+
+    def add(self, v: float) -> None:
+        self.n += 1
+        self.sumsq += v * v
+        self.max = v if self.max is None else max(self.max, v)
+        self.last = v
+        self.recent.append(v)
+
+    @property
+    def rms(self) -> float | None:
+        return float(np.sqrt(self.sumsq / self.n)) if self.n else None
+
+    def pct(self, q: float) -> float | None:
+        return float(np.percentile(self.recent, q)) if self.recent else None
+
+
+class BusScore:
+    def __init__(self):
+        self.fix_err, self.fused_err, self.latency_ms = ErrorStats(), ErrorStats(), ErrorStats()
+        self.fixes = 0
+        self.fixes_by_rsu: dict[str, int] = defaultdict(int)
+        self.fused = 0
+        self.fused_status: str | None = None
+        self.pending_fixes: list[tuple[int, float, float]] = []  # awaiting truth at their time
+        self.pending_fused: list[tuple[int, float, float, str | None]] = []
+
+
+class Monitor:
+    def __init__(self, session):
+        self.started = time.monotonic()
+        self.counters = MessageCounters()
+        self._lock = threading.Lock()
+        self.status: dict[str, RsuStatus] = {}
+        self.truth: dict[str, TruthTrack] = defaultdict(TruthTrack)
+        self.buses: dict[str, BusScore] = defaultdict(BusScore)
+        self._subs = [
+            subscribe_messages(session, keys.rsu_status(keys.ANY), RsuStatus, self._on_status, self.counters, log),
+            subscribe_messages(session, keys.pose_fix(keys.ANY, keys.ANY, keys.ANY), PoseFix, self._on_fix,
+                               self.counters, log),
+            subscribe_messages(session, keys.ground_truth(keys.ANY), GroundTruth, self._on_truth, self.counters, log),
+            subscribe_messages(session, keys.fused_pose(keys.ANY), FusedPose, self._on_fused, self.counters, log),
+        ]
+
+    def _on_status(self, m: RsuStatus) -> None:
+        with self._lock:
+            self.status[m.rsu_id] = m
+
+    def _on_truth(self, m: GroundTruth) -> None:
+        with self._lock:
+            self.truth[m.bus_id].add(m)
+
+    def _on_fix(self, m: PoseFix) -> None:
+        arrival = time.time_ns()
+        with self._lock:
+            b = self.buses[m.bus_id]
+            b.fixes += 1
+            b.fixes_by_rsu[m.rsu_id] += 1
+            b.latency_ms.add((arrival - m.capture_time_ns) * 1e-6)
+            b.pending_fixes.append((m.capture_time_ns, m.x, m.y))
+
+    def _on_fused(self, m: FusedPose) -> None:
+        with self._lock:
+            b = self.buses[m.bus_id]
+            b.fused += 1
+            b.fused_status = m.health.status
+            b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status))
+
+    def _score(self) -> None:
+        """Score the fixes and fused poses whose time the truth now covers; drop those it never will."""
+        for bus, b in self.buses.items():
+            track = self.truth.get(bus)
+            if track is None or not track.t:
+                continue
+            newest = track.t[-1]
+            keep_f = []
+            for t, x, y in b.pending_fixes:
+                truth = track.at(t)
+                if truth is not None:
+                    b.fix_err.add(float(np.hypot(x - truth[0], y - truth[1])))
+                elif t > newest:
+                    keep_f.append((t, x, y))
+            b.pending_fixes = keep_f
+            keep_u = []
+            for t, x, y, status in b.pending_fused:
+                truth = track.at(t)
+                if truth is not None:
+                    if status == "ok":  # a degraded pose says so itself; score what claims to be good
+                        b.fused_err.add(float(np.hypot(x - truth[0], y - truth[1])))
+                elif t > newest:
+                    keep_u.append((t, x, y, status))
+            b.pending_fused = keep_u
+
+    # ---- outputs --------------------------------------------------------------------------------
+    def summary(self) -> dict:
+        with self._lock:
+            self._score()
+            rsus = {rid: {"frames": s.frames_received, "frames_processed": s.frames_processed,
+                          "frames_detected": s.frames_with_fix, "fixes_published": s.fixes_published,
+                          "seconds_active": round(s.active_s, 1), "active_buses": s.active_buses,
+                          "detect_ms_mean": None if s.detection_ns_mean is None else s.detection_ns_mean * 1e-6,
+                          "messages_rejected": s.messages_rejected}
+                    for rid, s in sorted(self.status.items())}
+            buses = {}
+            for bus in sorted(set(self.buses) | set(self.truth)):
+                b = self.buses[bus]
+                buses[bus] = {
+                    "fixes_received": b.fixes,
+                    "fixes_scored": b.fix_err.n,
+                    "fix_pos_rms_m": b.fix_err.rms,
+                    "fix_pos_max_m": b.fix_err.max,
+                    "latency_ms_p50": b.latency_ms.pct(50),
+                    "latency_ms_p99": b.latency_ms.pct(99),
+                    "fixes_by_rsu": dict(sorted(b.fixes_by_rsu.items())),
+                    "fused_samples": b.fused,
+                    "fused_ok_samples": b.fused_err.n,
+                    "fused_pos_rms_m": b.fused_err.rms,
+                    "fused_pos_max_m": b.fused_err.max,
+                    "last_fix_err_m": b.fix_err.last,
+                    "last_fused_err_m": b.fused_err.last,
+                    "last_fused_status": b.fused_status,
+                }
+        return {"elapsed_s": round(time.monotonic() - self.started, 1), "rsus": rsus, "buses": buses,
+                "rejected_messages": self.counters.get("rejected")}
+
+    def progress(self, summary: dict | None = None) -> str:
+        s = summary or self.summary()
+        lines = [f"t={s['elapsed_s']:6.1f}s"]
+        for rid, r in s["rsus"].items():
+            st = self.status.get(rid)
+            fps = r["frames_processed"] / max(1e-9, (st.reference_time_ns - st.started_ns) * 1e-9) if st else 0
+            det = "-" if r["detect_ms_mean"] is None else f"{r['detect_ms_mean']:.1f} ms"
+            lines.append(f"  {rid:8s} buses {','.join(r['active_buses']) or '-':16s} frames {r['frames']:5d} "
+                         f"processed/s {fps:4.1f} detect {det:>8s} fixes {r['fixes_published']}")
+        for bus, b in s["buses"].items():
+            fe = "-" if b["last_fix_err_m"] is None else f"{100 * b['last_fix_err_m']:.1f} cm"
+            ue = "-" if b["last_fused_err_m"] is None else f"{100 * b['last_fused_err_m']:.1f} cm"
+            lat = "-" if b["latency_ms_p50"] is None else f"{b['latency_ms_p50']:.0f} ms"
+            lines.append(f"  {bus:8s} fixes {b['fixes_received']:5d} last fix err {fe:>9s} fused err {ue:>9s} "
+                         f"({b['last_fused_status'] or '-'}) latency p50 {lat}")
+        return "\n".join(lines)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.close()
+
+
+def write_report(path: str | Path, summary: dict) -> None:
+    Path(path).write_text(json.dumps(summary, indent=1))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toptag monitor", description=__doc__.split("\n\n")[0])
+    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--period", type=float, default=2.0, help="seconds between progress tables")
+    p.add_argument("--report", default=None, help="write the summary JSON here at the end")
+    add_zenoh_arguments(p)
+    return p
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        session = open_session(zenoh_config_from_args(args))
+    except ZenohSetupError as e:
+        print(f"toptag monitor: {e}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    monitor = Monitor(session)
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    try:
+        while not stop.wait(args.period) and (t_end is None or time.monotonic() < t_end):
+            print(monitor.progress(), flush=True)
+    finally:
+        summary = monitor.summary()
+        if args.report:
+            write_report(args.report, summary)
+        monitor.close()
+        session.close()
+    return 0

@@ -1,0 +1,83 @@
+"""Child processes of a toptag run (demo, tests of the deployment): started in their own session with
+their output in a log file, stopped by PID in a chosen order (SIGTERM, then SIGKILL after a grace)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+TOPTAG = [sys.executable, "-m", "toptag"]
+
+
+@dataclass
+class Child:
+    name: str
+    argv: list[str]
+    popen: subprocess.Popen
+    log_path: Path
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def log_tail(self, lines: int = 5) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+class ProcessGroup:
+    def __init__(self, log_dir: Path, env: dict | None = None):
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.env = dict(os.environ if env is None else env)
+        self.env.setdefault("PYTHONUNBUFFERED", "1")
+        self.children: list[Child] = []
+
+    def start(self, name: str, argv: list[str]) -> Child:
+        log_path = self.log_dir / f"{name}.log"
+        with open(log_path, "wb") as out:
+            # Own session: a Ctrl-C at the terminal reaches only the parent, which stops children in order.
+            p = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                 env=self.env, start_new_session=True)
+        child = Child(name, argv, p, log_path)
+        self.children.append(child)
+        return child
+
+    def dead(self) -> list[Child]:
+        return [c for c in self.children if not c.alive()]
+
+    def stop(self, children: list[Child] | None = None, grace_s: float = 5.0) -> dict[str, int | None]:
+        """SIGTERM each (in the given order, waiting for each), SIGKILL what ignores it; exit codes."""
+        codes: dict[str, int | None] = {}
+        for c in list(children if children is not None else reversed(self.children)):
+            if c.alive():
+                try:
+                    os.kill(c.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+                try:
+                    c.popen.wait(grace_s)
+                except subprocess.TimeoutExpired:
+                    os.kill(c.pid, signal.SIGKILL)
+                    c.popen.wait(2.0)
+            codes[c.name] = c.popen.returncode
+        return codes
+
+    def wait_for_log(self, child: Child, text: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in child.log_path.read_text(errors="replace"):
+                return True
+            if not child.alive():
+                return False
+            time.sleep(0.05)
+        return False

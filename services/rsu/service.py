@@ -1,0 +1,266 @@
+"""`toptag rsu`: the RSU service for one camera.
+
+Idle while no bus is in session: frames arrive and are dropped undecoded. A bus's Approach (or, for an
+RSU started late, the answer to a session query) adds its code bag to the pipeline; the RSU then
+detects only those tags and publishes one PoseFix per bus per frame, stamped with the frame's capture
+time. Leave, or the bus's liveliness token vanishing, ends the session. RsuStatus every second.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol import keys
+from protocol.codec import ProtocolError
+from protocol.images import frame_to_gray
+from protocol.messages import Approach, Frame, Leave, PoseFix, RsuStatus
+from services.common import (
+    REJECTED,
+    MessageCounters,
+    MessagePublisher,
+    ZenohSetupError,
+    add_zenoh_arguments,
+    latest_receiver,
+    open_session,
+    query_sessions,
+    subscribe_messages,
+    watch_buses,
+    zenoh_config_from_args,
+)
+from services.rsu.pipeline import PipelineSettings, RsuPipeline
+from toptag.camera import Camera
+from toptag.inputs import InputError
+from toptag.vehicle import Vehicle
+
+log = logging.getLogger("toptag.rsu")
+
+
+@dataclass
+class RsuCounters:
+    frames_received: int = 0
+    frames_processed: int = 0
+    frames_idle: int = 0
+    frames_bad: int = 0
+    frames_with_fix: int = 0
+    fixes_published: int = 0
+    active_s: float = 0.0
+    detect_ns: list[int] = field(default_factory=list)  # since the last status
+
+
+class RsuService:
+    """Wires one RsuPipeline to Zenoh. Session changes arrive on Zenoh threads and are applied by the
+    frame loop between frames, so the pipeline is only ever touched by one thread."""
+
+    def __init__(self, session, camera: Camera, intersection: str, settings: PipelineSettings | None = None):
+        self.session = session
+        self.camera = camera
+        self.rsu_id = camera.id
+        self.intersection = intersection
+        self.pipeline = RsuPipeline(camera, settings)
+        self.counters = RsuCounters()
+        self.msg_counters = MessageCounters()
+        self.started_ns = time.time_ns()
+        self._changes: queue.Queue = queue.Queue()
+        self._sessions: dict[str, Approach] = {}  # bus id -> its Approach (owned by the frame loop)
+        self._stop = threading.Event()
+        self._fix_pubs: dict[str, MessagePublisher] = {}
+        self._status_pub = MessagePublisher(session, keys.rsu_status(self.rsu_id), RsuStatus)
+        self._subs = [
+            subscribe_messages(session, keys.approach(intersection, keys.ANY), Approach,
+                               lambda m: self._changes.put(("approach", m)), self.msg_counters, log),
+            subscribe_messages(session, keys.leave(intersection, keys.ANY), Leave,
+                               lambda m: self._changes.put(("leave", m.bus_id, "leave")), self.msg_counters, log),
+        ]
+        self._frames = latest_receiver(session, keys.frame(self.rsu_id), Frame, self.msg_counters, log)
+        self._watch = watch_buses(session, intersection,
+                                  on_appear=lambda bus: self._changes.put(("appear", bus)),
+                                  on_vanish=lambda bus: self._changes.put(("leave", bus, "liveliness lost")),
+                                  logger=log)
+        self._changes.put(("query", None))
+
+    # ---- sessions -----------------------------------------------------------------------------
+    def _apply_changes(self) -> None:
+        while True:
+            try:
+                change = self._changes.get_nowait()
+            except queue.Empty:
+                return
+            kind = change[0]
+            if kind == "approach":
+                self._start_session(change[1])
+            elif kind == "leave":
+                self._end_session(change[1], change[2])
+            elif kind in ("appear", "query"):
+                # A bus we have no bag for (we started late or missed its Approach): ask for it.
+                if kind == "query" or change[1] not in self._sessions:
+                    self._query_sessions()
+
+    def _query_sessions(self) -> None:
+        found = query_sessions(self.session, self.intersection, timeout=1.0, counters=self.msg_counters, logger=log)
+        alive = {k.rsplit("/", 1)[-1] for k in self._watch.alive}
+        for bus, approach in found.items():
+            if bus in alive:
+                self._start_session(approach)
+
+    def _start_session(self, a: Approach) -> None:
+        known = self._sessions.get(a.bus_id)
+        if known is not None and known.vehicle == a.vehicle:
+            self._sessions[a.bus_id] = a  # a repeated Approach: nothing changes
+            return
+        try:
+            vehicle = Vehicle(a.vehicle)
+        except Exception as e:  # the bag passed the wire schema but is unusable
+            self.msg_counters.inc(REJECTED, "Approach", keys.approach(self.intersection, a.bus_id), reason="bag",
+                                  error=str(e))
+            log.warning("bus %s: unusable code bag: %s", a.bus_id, e)
+            return
+        clash = {(vehicle.family, t) for t in vehicle.tag_ids} & {
+            (v.family, t) for b, v in self.pipeline.vehicles.items() if b != a.bus_id for t in v.tag_ids}
+        if clash:
+            log.warning("bus %s shares tag ids %s with a bus already in session: those tags are ambiguous and "
+                        "will not be used for either", a.bus_id, sorted(t for _, t in clash))
+        self._sessions[a.bus_id] = a
+        self.pipeline.add_vehicle(vehicle)
+        self._fix_pubs.setdefault(a.bus_id, MessagePublisher(
+            self.session, keys.pose_fix(self.intersection, a.bus_id, self.rsu_id), PoseFix))
+        log.info("session start: bus %s (tags %s)", a.bus_id, vehicle.tag_ids)
+
+    def _end_session(self, bus: str, why: str) -> None:
+        if self._sessions.pop(bus, None) is None:
+            return
+        self.pipeline.remove_vehicle(bus)
+        pub = self._fix_pubs.pop(bus, None)
+        if pub is not None:
+            pub.close()
+        log.info("session end: bus %s (%s)", bus, why)
+
+    # ---- frames -------------------------------------------------------------------------------
+    def handle_frame(self, frame: Frame) -> None:
+        c = self.counters
+        c.frames_received += 1
+        if not self._sessions:
+            c.frames_idle += 1  # no bus announced: no decoding, no detection
+            return
+        try:
+            gray = frame_to_gray(frame)
+            if gray.shape != (self.camera.height, self.camera.width):
+                raise ProtocolError(f"frame {frame.seq}: {gray.shape[1]}x{gray.shape[0]} from a "
+                                    f"{self.camera.width}x{self.camera.height} camera", reason="frame")
+        except ProtocolError as e:
+            c.frames_bad += 1
+            self.msg_counters.inc(REJECTED, "Frame", keys.frame(self.rsu_id), reason=e.reason, error=str(e))
+            log.warning("dropped frame: %s", e)
+            return
+        t0 = time.perf_counter_ns()
+        result = self.pipeline.process(gray, frame.capture_time_ns)
+        c.detect_ns.append(time.perf_counter_ns() - t0)
+        c.frames_processed += 1
+        published = 0
+        for bus, vr in result.vehicles.items():
+            sol = vr.solution
+            if sol is None or not sol.ok or bus not in self._fix_pubs:
+                continue
+            fix = PoseFix(bus_id=bus, rsu_id=self.rsu_id, intersection_id=self.intersection,
+                          capture_time_ns=frame.capture_time_ns, publish_time_ns=time.time_ns(),
+                          x=sol.x, y=sol.y, z=sol.z, yaw=sol.yaw, covariance=np.asarray(sol.covariance).tolist(),
+                          method=sol.method, tags_used=[int(t) for t in sol.tags],
+                          reprojection_rms_px=float(sol.rms_px), frame_seq=frame.seq)
+            self._fix_pubs[bus].put(fix)
+            published += 1
+        c.fixes_published += published
+        c.frames_with_fix += bool(published)
+
+    def status(self) -> RsuStatus:
+        c = self.counters
+        det = c.detect_ns
+        msg = RsuStatus(rsu_id=self.rsu_id, intersection_id=self.intersection, reference_time_ns=time.time_ns(),
+                        started_ns=self.started_ns, active_buses=sorted(self._sessions),
+                        frames_received=c.frames_received, frames_processed=c.frames_processed,
+                        frames_skipped=self.msg_counters.get("skipped", "Frame") + c.frames_idle,
+                        frames_with_fix=c.frames_with_fix, fixes_published=c.fixes_published,
+                        active_s=c.active_s, messages_rejected=self.msg_counters.get(REJECTED),
+                        detection_ns_mean=int(np.mean(det)) if det else None,
+                        detection_ns_max=int(np.max(det)) if det else None)
+        c.detect_ns = []
+        return msg
+
+    # ---- loop ---------------------------------------------------------------------------------
+    def run(self, duration: float | None = None, status_period: float = 1.0) -> None:
+        t_end = None if duration is None else time.monotonic() + duration
+        next_status = time.monotonic() + status_period
+        last = time.monotonic()
+        while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):
+            self._apply_changes()
+            frame = self._frames.recv(timeout=0.05)
+            now = time.monotonic()
+            if self._sessions:
+                self.counters.active_s += now - last
+            last = now
+            if frame is not None:
+                try:
+                    self.handle_frame(frame)
+                except Exception as e:  # a bug on one frame must not stop the RSU
+                    log.exception("frame %s failed: %s", getattr(frame, "seq", "?"), e)
+            if now >= next_status:
+                next_status = now + status_period
+                self._status_pub.put(self.status())
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.close()
+        self._frames.close()
+        self._watch.close()
+        for p in self._fix_pubs.values():
+            p.close()
+        self._status_pub.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toptag rsu", description=__doc__.split("\n\n")[0])
+    p.add_argument("--camera", required=True, help="camera calibration JSON; its id is the RSU id")
+    p.add_argument("--intersection", required=True, help="intersection id (as in the map file)")
+    p.add_argument("--method", choices=("bas", "hopt", "sopt"), default="sopt")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    add_zenoh_arguments(p)
+    return p
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+    try:
+        camera = Camera.load(args.camera)
+        keys.frame(camera.id)  # the camera id must be usable as an RSU id on the wire
+        keys.approach(args.intersection, "x")
+    except (InputError, ValueError) as e:
+        print(f"toptag rsu: {e}", file=sys.stderr)
+        return 2
+    try:
+        session = open_session(zenoh_config_from_args(args))
+    except ZenohSetupError as e:
+        print(f"toptag rsu: {e}", file=sys.stderr)
+        return 1
+    service = RsuService(session, camera, args.intersection, PipelineSettings(method=args.method))
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: service.stop())
+    log.info("RSU %s at intersection %s ready (%dx%d)", camera.id, args.intersection, camera.width, camera.height)
+    try:
+        service.run(args.duration)
+    finally:
+        service.close()
+        session.close()
+        log.info("RSU %s stopped", camera.id)
+    return 0

@@ -1,0 +1,274 @@
+"""`toptag sim run`: the live simulator that drives the running system's cameras and bus sensors.
+
+    toptag sim run [--scenario FILE] [--duration S] [zenoh options: --connect/--listen/--zenoh-mode ...]
+
+Plays a scenario (sim.scenario; default: the bundled toptag/data/demo/scenario.json) on the wall clock
+(simulator time = wall-clock time, integer ns since the epoch) and publishes through Zenoh:
+- every RSU: a Frame (JPEG of sim.render at the scenario's image model) every 1/fps s on
+  keys.frame(rsu_id). RSUs are staggered within the period to spread the CPU load. A frame's
+  capture_time_ns is its scheduled tick, which is also the instant of the truth used to render it; seq
+  is the tick index (a skipped tick leaves a gap in seq).
+- every bus on the road: Imu at imu_hz (keys.imu; gyro_z, accel_x/y gravity-compensated, wheel_speed,
+  seq +1 per sample), GroundTruth at truth_hz (keys.ground_truth; z = roof height), GnssFix at gnss_hz
+  (keys.gnss; N(0, gnss_sigma_m) per axis, none inside the map's gnss_shadow_radius). Samples lie on
+  fixed grids from the start time and are published once their time has come.
+A bus exists only during its legs (see sim.world): between legs nothing is published for it.
+
+Honest timing: if rendering falls behind, late ticks (more than half a period, at most 50 ms) are
+skipped and counted, never rendered late in a backlog; the schedule never drifts. A progress line every
+5 s: frames per RSU, achieved fps, render+encode ms p50/p90, skipped ticks, sensor counts.
+
+Exit 0 after --duration or on SIGINT/SIGTERM (session closed); 2 with one line on stderr for a bad
+scenario (or camera, vehicle, map file); 1 if the Zenoh session cannot be opened. Without --duration
+the cameras keep streaming after a non-looping scenario's last leg (an empty intersection).
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from collections import defaultdict
+
+import cv2
+import numpy as np
+
+from protocol import keys
+from protocol.messages import Frame, GnssFix, GroundTruth, Imu
+from services.common import (
+    MessagePublisher,
+    ZenohSetupError,
+    add_zenoh_arguments,
+    config_summary,
+    open_session,
+    zenoh_config_from_args,
+)
+from sim.scenario import bundled_scenario_path, load_scenario
+from sim.world import NS, World
+from toptag.inputs import InputError
+
+log = logging.getLogger("toptag.sim")
+
+PROGRESS_S = 5.0
+MAX_LATE_S = 0.05  # a tick rendered later than min(half a period, this) is skipped
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toptag sim run", description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenario", default=None, metavar="FILE",
+                   help="scenario file (default: the bundled demo, toptag/data/demo/scenario.json)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds of simulated (= wall-clock) time; default: run until signalled")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    add_zenoh_arguments(p, default_mode="peer")
+    return p
+
+
+class _Publishers:
+    def __init__(self, session, world: World):
+        self.frames = {r: MessagePublisher(session, keys.frame(r), Frame) for r in world.rsu_ids}
+        self.imu = {b: MessagePublisher(session, keys.imu(b), Imu) for b in world.bus_ids}
+        self.truth = {b: MessagePublisher(session, keys.ground_truth(b), GroundTruth) for b in world.bus_ids}
+        self.gnss = {b: MessagePublisher(session, keys.gnss(b), GnssFix) for b in world.bus_ids}
+
+    def close(self) -> None:
+        for group in (self.frames, self.imu, self.truth, self.gnss):
+            for p in group.values():
+                p.close()
+
+
+class SensorLoop(threading.Thread):
+    """IMU, ground truth and GNSS of every bus, each sample published as soon as its time has come."""
+
+    def __init__(self, world: World, pubs: _Publishers, stop: threading.Event):
+        super().__init__(name="sim-sensors", daemon=True)
+        self.world, self.pubs, self.stop_event = world, pubs, stop
+        self.counts: dict[str, int] = defaultdict(int)
+        self.max_delay_ns = 0  # worst publish delay of an IMU sample behind its time, since last read
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        w = self.world
+        step = NS / w.scenario.imu_hz
+        last = w.t0_ns - 1
+        try:
+            while not self.stop_event.is_set():
+                now = time.time_ns()
+                self.publish_until(last, now)
+                last = now
+                k = int(np.floor((now - w.t0_ns) / step)) + 1
+                wake = w.t0_ns + int(round(k * step))
+                self.stop_event.wait(max(0.0, (wake - time.time_ns()) / NS) + 2e-4)
+        except BaseException as e:  # noqa: BLE001 - reported by the main loop
+            self.error = e
+            log.exception("sensor loop failed")
+            self.stop_event.set()
+
+    def publish_until(self, t_from: int, t_to: int) -> None:
+        w, p = self.world, self.pubs
+        for bus in w.bus_ids:
+            batch = w.imu_between(bus, t_from, t_to)
+            for i in range(len(batch)):
+                p.imu[bus].put(Imu(bus_id=bus, t_ns=int(batch.t_ns[i]), gyro_z=float(batch.gyro_z[i]),
+                                   accel_x=float(batch.accel_x[i]), accel_y=float(batch.accel_y[i]),
+                                   wheel_speed=float(batch.wheel_speed[i]), seq=int(batch.seq[i])))
+            if len(batch):
+                self.counts["imu"] += len(batch)
+                self.max_delay_ns = max(self.max_delay_ns, time.time_ns() - int(batch.t_ns[-1]))
+            for s in w.truth_between(bus, t_from, t_to):
+                p.truth[bus].put(GroundTruth(bus_id=bus, t_ns=s.t_ns, x=s.x, y=s.y, z=s.z, yaw=s.yaw,
+                                             speed=s.speed, yaw_rate=s.yaw_rate))
+                self.counts["truth"] += 1
+            for g in w.gnss_between(bus, t_from, t_to):
+                p.gnss[bus].put(GnssFix(bus_id=bus, t_ns=g.t_ns, x=g.x, y=g.y, sigma_m=g.sigma_m))
+                self.counts["gnss"] += 1
+
+
+class FrameStats:
+    def __init__(self, rsu_ids: list[str]):
+        self.published = {r: 0 for r in rsu_ids}
+        self.skipped = {r: 0 for r in rsu_ids}
+        self.render_ms: list[float] = []  # since the last progress line
+        self.all_render_ms: list[float] = []
+
+    def line(self, elapsed_s: float, since: dict[str, int], window_s: float) -> str:
+        parts = []
+        for r, n in self.published.items():
+            fps = (n - since.get(r, 0)) / window_s if window_s > 0 else 0.0
+            parts.append(f"{r} {n} ({fps:.1f} fps)")
+        ms = np.asarray(self.render_ms) if self.render_ms else np.zeros(1)
+        return (f"t=+{elapsed_s:.0f} s frames {', '.join(parts)}; render+encode p50 "
+                f"{np.percentile(ms, 50):.1f} ms p90 {np.percentile(ms, 90):.1f} ms; "
+                f"skipped {sum(self.skipped.values())}")
+
+
+def run(world: World, session, stop: threading.Event, duration_s: float | None = None) -> FrameStats:
+    """The real-time loop (the caller has warmed the world up and opens/closes the session): starts
+    the clock now, renders and publishes until `stop` is set or `duration_s` has passed."""
+    pubs = _Publishers(session, world)
+    world.start(time.time_ns())
+    t0 = world.t0_ns
+    end = t0 + int(duration_s * NS) if duration_s is not None else None
+    n = len(world.rsu_ids)
+    next_k = [0] * n
+    stats = FrameStats(world.rsu_ids)
+    sensors = SensorLoop(world, pubs, stop)
+    sensors.start()
+    log.info("sim running: t0_ns=%d, %d RSUs at %s fps, buses %s, %s%s", t0, n,
+             "/".join(f"{f:g}" for f in world.fps), ", ".join(world.bus_ids) or "(none)",
+             f"loop every {world.period_ns / NS:.1f} s" if world.period_ns else "no loop",
+             f", for {duration_s:g} s" if duration_s is not None else "")
+    last_progress, since = time.monotonic(), dict(stats.published)
+    try:
+        while not stop.is_set():
+            mono = time.monotonic()
+            if mono - last_progress >= PROGRESS_S:
+                log.info("%s; imu %d truth %d gnss %d (imu delay max %.1f ms); on the road: %s",
+                         stats.line((time.time_ns() - t0) / NS, since, mono - last_progress),
+                         sensors.counts["imu"], sensors.counts["truth"], sensors.counts["gnss"],
+                         sensors.max_delay_ns / 1e6, ", ".join(world.truth_at(time.time_ns())) or "nobody")
+                sensors.max_delay_ns = 0
+                stats.all_render_ms.extend(stats.render_ms)
+                stats.render_ms = []
+                last_progress, since = mono, dict(stats.published)
+            now = time.time_ns()
+            if end is not None and now >= end:
+                break
+            ticks = [world.frame_time(r, next_k[r]) for r in range(n)]
+            r = int(np.argmin(ticks))
+            t = ticks[r]
+            if end is not None and t >= end:
+                stop.wait((end - now) / NS)
+                break
+            if t > now:
+                stop.wait((t - now) / NS)
+                continue
+            late_limit = min(0.5 * NS / world.fps[r], MAX_LATE_S * NS)
+            if now - t > late_limit:
+                k = world.frame_index_from(r, now - int(late_limit) + 1)
+                stats.skipped[world.rsu_ids[r]] += k - next_k[r]
+                next_k[r] = k
+                continue
+            c0 = time.perf_counter()
+            jpeg = world.render_jpeg(r, t)
+            stats.render_ms.append((time.perf_counter() - c0) * 1e3)
+            cam = world.cameras[r]
+            pubs.frames[cam.id].put(Frame(rsu_id=cam.id, capture_time_ns=t, seq=next_k[r], encoding="jpeg",
+                                          width=cam.width, height=cam.height, image=jpeg))
+            stats.published[cam.id] += 1
+            next_k[r] += 1
+    finally:
+        stop.set()
+        sensors.join(timeout=2.0)
+        stats.all_render_ms.extend(stats.render_ms)
+        ms = np.asarray(stats.all_render_ms) if stats.all_render_ms else np.zeros(1)
+        log.info("sim stopped after %.1f s: frames %s; skipped %d; render+encode p50 %.1f ms p90 %.1f ms; "
+                 "imu %d truth %d gnss %d", (time.time_ns() - t0) / NS,
+                 ", ".join(f"{r} {k}" for r, k in stats.published.items()), sum(stats.skipped.values()),
+                 np.percentile(ms, 50), np.percentile(ms, 90), sensors.counts["imu"], sensors.counts["truth"],
+                 sensors.counts["gnss"])
+        pubs.close()
+    if sensors.error is not None:
+        raise RuntimeError(f"sensor loop failed: {sensors.error}")
+    return stats
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.duration is not None and not args.duration > 0:
+        print("toptag sim run: --duration must be positive", file=sys.stderr)
+        return 2
+    path = args.scenario or bundled_scenario_path()
+    try:
+        world = World(load_scenario(path))
+    except InputError as e:
+        print(f"toptag sim run: {e}", file=sys.stderr)
+        return 2
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    else:
+        logging.getLogger().setLevel(args.log_level)
+    cv2.setNumThreads(1)
+
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        log.info("received %s, stopping", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, on_signal)
+    try:
+        c0 = time.perf_counter()
+        world.warm_up()
+        log.info("scenario %s: %d RSUs, %d buses, %d trucks; camera caches built in %.2f s; image model: %s",
+                 path, len(world.cameras), len(world.buses), len(world.trucks), time.perf_counter() - c0,
+                 world.model.describe())
+        if stop.is_set():
+            return 0
+        try:
+            conf = zenoh_config_from_args(args)
+            session = open_session(conf)
+        except ZenohSetupError as e:
+            log.error("%s", e)
+            return 1
+        try:
+            log.info("zenoh session open (%s)", config_summary(conf))
+            run(world, session, stop, args.duration)
+        except RuntimeError as e:
+            log.error("%s", e)
+            return 1
+        finally:
+            session.close()
+        return 0
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

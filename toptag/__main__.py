@@ -1,0 +1,3 @@
+from toptag.cli import main
+
+main()

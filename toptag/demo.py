@@ -1,0 +1,107 @@
+"""`toptag demo`: the whole system on one machine, every service its own process.
+
+A `toptag router` on loopback; the simulator, one RSU per camera and one agent per bus of the scenario
+connect to it as Zenoh clients (the topology of the compose demo). The demo itself joins as a monitor,
+prints live progress, and at --duration or Ctrl-C stops every process (buses first, so they leave
+properly; the router last) and writes --report.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import socket
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from services.processes import TOPTAG, ProcessGroup
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toptag demo", description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenario", default=None, help="scenario file (default: the bundled two-bus demo)")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
+    p.add_argument("--report", default=None, help="write the JSON report here")
+    p.add_argument("--logs", default=None, help="directory for each process's log (default: a temp dir)")
+    p.add_argument("--period", type=float, default=2.0, help="seconds between progress tables")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    from sim.scenario import bundled_scenario_path, load_scenario
+    from toptag.inputs import InputError
+
+    scenario_path = Path(args.scenario) if args.scenario else bundled_scenario_path()
+    try:
+        scenario = load_scenario(scenario_path)
+    except InputError as e:
+        print(f"toptag demo: {e}", file=sys.stderr)
+        return 2
+    log_dir = Path(args.logs) if args.logs else Path(tempfile.mkdtemp(prefix="toptag-demo-"))
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    client = ["--zenoh-mode", "client", "--connect", endpoint]
+    group = ProcessGroup(log_dir)
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    print(f"toptag demo: router on {endpoint}; logs in {log_dir}", flush=True)
+
+    router = group.start("router", TOPTAG + ["router", "--listen", endpoint])
+    if not group.wait_for_log(router, "router listening", 15):
+        print(f"toptag demo: the router did not start:\n{router.log_tail()}", file=sys.stderr)
+        group.stop()
+        return 1
+    from services.common import open_session
+    from services.monitor import Monitor, write_report
+
+    session = open_session(mode="client", connect=[endpoint])
+    monitor = Monitor(session)
+    rsus = [group.start(cam.stem, TOPTAG + ["rsu", "--camera", str(cam), "--intersection", scenario.intersection_id]
+                        + client) for cam in scenario.camera_paths()]
+    buses = [group.start(f"bus-{veh.stem}", TOPTAG + ["bus", "--vehicle", str(veh), "--map", str(scenario.map_path())]
+                         + client) for veh in scenario.vehicle_paths()]
+    sim = group.start("sim", TOPTAG + ["sim", "run", "--scenario", str(scenario_path)] + client)
+
+    t_end = time.monotonic() + args.duration
+    exit_code = 0
+    try:
+        while not stop.wait(args.period) and time.monotonic() < t_end:
+            print(monitor.progress(), flush=True)
+            dead = group.dead()
+            if dead:
+                for c in dead:
+                    print(f"toptag demo: {c.name} exited with {c.popen.returncode}:\n{c.log_tail()}", file=sys.stderr)
+                exit_code = 1
+                break
+    finally:
+        # Buses first (they send Leave), then the sim, the RSUs, and the router last.
+        codes = group.stop(buses + [sim] + rsus)
+        time.sleep(0.2)
+        summary = monitor.summary()
+        monitor.close()
+        session.close()
+        codes.update(group.stop([router]))
+        for s, h in previous.items():
+            signal.signal(s, h)
+    summary["exit_codes"] = codes
+    summary["logs"] = str(log_dir)
+    print(monitor.progress(summary))
+    print(json.dumps({b: {k: v for k, v in r.items() if k in ("fixes_received", "fix_pos_rms_m", "fused_pos_rms_m",
+                                                                  "latency_ms_p50", "latency_ms_p99")}
+                      for b, r in summary["buses"].items()}, indent=1))
+    if args.report:
+        write_report(args.report, summary)
+        print(f"toptag demo: report written to {args.report}")
+    if any(c not in (0, None) for c in codes.values()):
+        print(f"toptag demo: processes exited with {codes}", file=sys.stderr)
+        exit_code = exit_code or 1
+    return exit_code
