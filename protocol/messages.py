@@ -226,7 +226,8 @@ class RsuStatus(Message):
     active_buses: list[Id] = Field(default_factory=list)
     frames_received: Count = 0
     frames_processed: Count = 0
-    frames_skipped: Count = 0
+    frames_skipped: Count = Field(default=0, description="frames overwritten unprocessed because the RSU was busy")
+    frames_idle: Count = Field(default=0, description="frames dropped undecoded because no bus was in session")
     frames_with_fix: Count = Field(default=0, description="frames that gave at least one PoseFix")
     fixes_published: Count = 0
     active_s: float = Field(default=0.0, ge=0, description="seconds with at least one bus in session")

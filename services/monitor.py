@@ -166,6 +166,7 @@ class Monitor:
         with self._lock:
             self._score()
             rsus = {rid: {"frames": s.frames_received, "frames_processed": s.frames_processed,
+                          "frames_idle": s.frames_idle, "frames_skipped_busy": s.frames_skipped,
                           "frames_detected": s.frames_with_fix, "fixes_published": s.fixes_published,
                           "seconds_active": round(s.active_s, 1), "active_buses": s.active_buses,
                           "detect_ms_mean": None if s.detection_ns_mean is None else s.detection_ns_mean * 1e-6,
@@ -197,11 +198,10 @@ class Monitor:
         s = summary or self.summary()
         lines = [f"t={s['elapsed_s']:6.1f}s"]
         for rid, r in s["rsus"].items():
-            st = self.status.get(rid)
-            fps = r["frames_processed"] / max(1e-9, (st.reference_time_ns - st.started_ns) * 1e-9) if st else 0
             det = "-" if r["detect_ms_mean"] is None else f"{r['detect_ms_mean']:.1f} ms"
             lines.append(f"  {rid:8s} buses {','.join(r['active_buses']) or '-':16s} frames {r['frames']:5d} "
-                         f"processed/s {fps:4.1f} detect {det:>8s} fixes {r['fixes_published']}")
+                         f"processed {r['frames_processed']:5d} idle {r['frames_idle']:5d} "
+                         f"behind {r['frames_skipped_busy']:3d} detect {det:>8s} fixes {r['fixes_published']}")
         for bus, b in s["buses"].items():
             fe = "-" if b["last_fix_err_m"] is None else f"{100 * b['last_fix_err_m']:.1f} cm"
             ue = "-" if b["last_fused_err_m"] is None else f"{100 * b['last_fused_err_m']:.1f} cm"

@@ -1,18 +1,25 @@
 """`toptag router`: a Zenoh router for an intersection's RSUs and buses.
 
     python -m services.router [--listen tcp/0.0.0.0:7447] [--connect ENDPOINT] [--zenoh-config FILE]
+                              [--secure CERT_DIR]
 
 Listens on tcp/0.0.0.0:7447 unless --listen, TOPTAG_ZENOH_LISTEN or the config file say otherwise;
-multicast scouting is off unless asked for. Logs "router listening on ..." once the session is open and
+multicast scouting is off unless asked for. With --secure DIR (env TOPTAG_ZENOH_SECURE), a directory
+written by `toptag certs`, it listens on tls/0.0.0.0:7447 only, requires client certificates from that
+CA and enforces the access control of services/security.py (docs/security.md). RUST_LOG (e.g.
+zenoh::net::routing::interceptor::access_control=trace) turns on zenoh's own logs. Logs "router listening on ..." once the session is open and
 runs until SIGINT or SIGTERM, then closes the session and exits 0 (1 if the router cannot start).
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
+
+import zenoh
 
 from services.common import (
     ZenohSetupError,
@@ -23,12 +30,16 @@ from services.common import (
 )
 
 DEFAULT_LISTEN = ("tcp/0.0.0.0:7447",)
+DEFAULT_SECURE_LISTEN = ("tls/0.0.0.0:7447",)
+ENV_SECURE = "TOPTAG_ZENOH_SECURE"
 log = logging.getLogger("toptag.router")
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag router", description=__doc__.split("\n\n")[0])
     add_zenoh_arguments(p, default_mode="router")
+    p.add_argument("--secure", "--tls-dir", dest="secure", default=None, metavar="CERT_DIR",
+                   help=f"mutual TLS and access control from a `toptag certs` directory (env {ENV_SECURE})")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return p
 
@@ -54,9 +65,20 @@ def main(argv: list[str] | None = None) -> int:
     if in_main_thread:
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, on_signal)
+    secure = args.secure or os.environ.get(ENV_SECURE) or None
     try:
         try:
-            conf = zenoh_config_from_args(args, mode="router", default_listen=DEFAULT_LISTEN)
+            conf = zenoh_config_from_args(args, mode="router",
+                                          default_listen=DEFAULT_SECURE_LISTEN if secure else DEFAULT_LISTEN)
+            if secure:
+                from services.security import SecurityError, secure_router_config
+                try:
+                    certs = secure_router_config(conf, secure)
+                except SecurityError as e:
+                    raise ZenohSetupError(f"--secure {secure}: {e}") from None
+                log.info("mutual TLS with CA %s; access control for %d identities", certs.ca_cert,
+                         len(certs.identities))
+            zenoh.try_init_log_from_env()
             session = open_session(conf)
         except ZenohSetupError as e:
             log.error("%s", e)

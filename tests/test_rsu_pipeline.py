@@ -153,3 +153,24 @@ def test_far_tag_at_25_m_found_with_default_settings():
         sol = p.process(render(camera, [pv], model=ImageModel(), rng=rng), 0).vehicles[v.id].solution
         found += sol is not None and sol.ok and np.hypot(sol.x - pv.x, sol.y - pv.y) < 0.5
     assert found >= 26, found
+
+
+def test_another_rsus_fix_replaces_acquisition(bus_pass):
+    """A hint (another RSU's fix) makes the search a crop where the bus is, and no search at all where
+    the bus cannot be seen."""
+    camera, bus, frames = bus_pass
+    t_ns, img, truth, visible = next(f for f in frames if f[3])
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    p.hint(bus.id, t_ns - 150_000_000, truth[0] + 0.05, truth[1] - 0.05, truth[2], truth[3])
+    res = p.process(img, t_ns)
+    vr = res.vehicles[bus.id]
+    assert vr.mode == "hinted" and not res.acquired and vr.solution is not None and vr.solution.ok
+    assert res.pixels_searched < 0.3 * camera.width * camera.height
+    assert np.hypot(vr.solution.x - truth[0], vr.solution.y - truth[1]) < 0.1
+
+    far = RsuPipeline(camera)
+    far.add_vehicle(bus)
+    far.hint(bus.id, t_ns, 40.0, 40.0, 0.0, 3.0)  # behind the camera's view
+    res = far.process(img, t_ns)
+    assert res.vehicles[bus.id].mode == "out_of_view" and res.pixels_searched == 0 and not res.acquired

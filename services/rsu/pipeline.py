@@ -42,6 +42,11 @@ class PipelineSettings(BaseModel):
     # While other buses are tracked, an unfound one is searched at most this often: acquisition is the
     # expensive step and tracked buses must keep their frame rate.
     acquire_period_s: float = 0.5
+    # Another RSU's fix of a bus this camera has not found tells where to look (or that the bus is out
+    # of view and nothing needs searching); it is trusted for this long, with this extra margin for the
+    # two cameras' calibration differences.
+    hint_max_age_s: float = 1.0
+    hint_margin_m: float = 0.3
     crop_pad_px: float = 6.0
     workers: int = 2
 
@@ -61,7 +66,7 @@ class DetectJob:
 class VehicleResult:
     vehicle_id: str
     solution: PoseSolution | None
-    mode: str  # "tracked" | "acquired" | "searching" | "waiting"
+    mode: str  # "tracked" | "hinted" | "out_of_view" | "acquired" | "searching" | "waiting"
     regions: int = 0
     observations: list = field(default_factory=list)  # the TagObservations the solution was made from
 
@@ -116,6 +121,7 @@ class RsuPipeline:
         self.tracks: dict[str, VehicleTrack] = {}
         self._pools: dict[tuple[str, ...], _DetectorPool] = {}
         self._bands: dict[tuple[float, float], list[Band]] = {}
+        self._hints: dict[str, VehicleTrack] = {}
         self._last_acquire_ns: int | None = None
 
     # ---- code bags ----------------------------------------------------------------------------
@@ -126,10 +132,19 @@ class RsuPipeline:
     def remove_vehicle(self, vehicle_id: str) -> None:
         self.vehicles.pop(vehicle_id, None)
         self.tracks.pop(vehicle_id, None)
+        self._hints.pop(vehicle_id, None)
+
+    def hint(self, vehicle_id: str, t_ns: int, x: float, y: float, yaw: float, z: float) -> None:
+        """A pose of an announced vehicle from elsewhere (another RSU's fix)."""
+        if vehicle_id in self.vehicles:
+            track = VehicleTrack(TrackSettings())
+            track.update(t_ns, x, y, yaw, z)
+            self._hints[vehicle_id] = track
 
     def reset_tracks(self) -> None:
         for t in self.tracks.values():
             t.reset()
+        self._hints.clear()
 
     def _pool(self) -> _DetectorPool:
         families = tuple(sorted({v.family for v in self.vehicles.values()}))
@@ -147,13 +162,15 @@ class RsuPipeline:
                              f"{self.camera.width}x{self.camera.height}")
         pool = self._pool()
         tracked = [vid for vid, tr in self.tracks.items() if tr.found and self.settings.tracking]
-        unfound = [vid for vid in self.vehicles if vid not in tracked]
+        hinted = [vid for vid in self.vehicles if vid not in tracked and self._fresh_hint(vid, t_ns)]
+        unfound = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted]
         t0 = time.perf_counter()
 
         jobs: list[DetectJob] = []
         regions_of: dict[str, int] = {}
-        for vid in tracked:
-            vjobs = self._tracking_jobs(self.vehicles[vid], self.tracks[vid], t_ns)
+        for vid in tracked + hinted:
+            track, extra = (self.tracks[vid], 0.0) if vid in tracked else (self._hints[vid], self.settings.hint_margin_m)
+            vjobs = self._tracking_jobs(self.vehicles[vid], track, t_ns, extra)
             regions_of[vid] = len(vjobs)
             jobs += vjobs
         jobs = _merge_jobs(jobs)
@@ -177,13 +194,16 @@ class RsuPipeline:
         for vid, vehicle in self.vehicles.items():
             obs = observed.get(vid, [])
             was_tracked = vid in tracked
-            mode = "tracked" if was_tracked else ("acquired" if result.acquired else "waiting")
+            if vid in hinted:
+                mode = "hinted" if regions_of[vid] else "out_of_view"
+            else:
+                mode = "tracked" if was_tracked else ("acquired" if result.acquired else "waiting")
             sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None
             if sol is not None and sol.ok:
                 self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
             elif was_tracked:
                 self.tracks[vid].miss()
-            if sol is None and mode != "waiting":
+            if sol is None and mode not in ("waiting", "out_of_view"):
                 mode = "searching"
             result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0), obs)
         result.solve_ms = (time.perf_counter() - t1) * 1e3
@@ -207,8 +227,12 @@ class RsuPipeline:
                                                  s.acquire_max_decimate, s.upsample_below_px)
         return [DetectJob(b.box, b.decimate, b.upsample) for b in self._bands[key]]
 
-    def _tracking_jobs(self, vehicle: Vehicle, track: VehicleTrack, t_ns: int) -> list[DetectJob]:
-        p = track.predict(t_ns)
+    def _fresh_hint(self, vid: str, t_ns: int) -> bool:
+        h = self._hints.get(vid)
+        return h is not None and abs(t_ns - h.t_ns) * 1e-9 <= self.settings.hint_max_age_s
+
+    def _tracking_jobs(self, vehicle: Vehicle, track: VehicleTrack, t_ns: int, extra_radius: float = 0.0) -> list[DetectJob]:
+        p = track.predict(t_ns, extra_radius)
         jobs = []
         for tid in vehicle.tag_ids:
             box = tag_region(self.camera, vehicle, tid, p.x, p.y, p.yaw, p.z, p.pos_radius, p.yaw_margin,

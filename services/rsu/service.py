@@ -78,6 +78,9 @@ class RsuService:
                                lambda m: self._changes.put(("approach", m)), self.msg_counters, log),
             subscribe_messages(session, keys.leave(intersection, keys.ANY), Leave,
                                lambda m: self._changes.put(("leave", m.bus_id, "leave")), self.msg_counters, log),
+            # The other RSUs' fixes say where a bus is: search there, or not at all when it is out of view.
+            subscribe_messages(session, keys.pose_fix(intersection, keys.ANY, keys.ANY), PoseFix,
+                               self._on_peer_fix, self.msg_counters, log),
         ]
         self._frames = latest_receiver(session, keys.frame(self.rsu_id), Frame, self.msg_counters, log)
         self._watch = watch_buses(session, intersection,
@@ -85,6 +88,10 @@ class RsuService:
                                   on_vanish=lambda bus: self._changes.put(("leave", bus, "liveliness lost")),
                                   logger=log)
         self._changes.put(("query", None))
+
+    def _on_peer_fix(self, m: PoseFix) -> None:
+        if m.rsu_id != self.rsu_id:
+            self._changes.put(("hint", m))
 
     # ---- sessions -----------------------------------------------------------------------------
     def _apply_changes(self) -> None:
@@ -98,6 +105,9 @@ class RsuService:
                 self._start_session(change[1])
             elif kind == "leave":
                 self._end_session(change[1], change[2])
+            elif kind == "hint":
+                m = change[1]
+                self.pipeline.hint(m.bus_id, m.capture_time_ns, m.x, m.y, m.yaw, m.z)
             elif kind in ("appear", "query"):
                 # A bus we have no bag for (we started late or missed its Approach): ask for it.
                 if kind == "query" or change[1] not in self._sessions:
@@ -184,7 +194,7 @@ class RsuService:
         msg = RsuStatus(rsu_id=self.rsu_id, intersection_id=self.intersection, reference_time_ns=time.time_ns(),
                         started_ns=self.started_ns, active_buses=sorted(self._sessions),
                         frames_received=c.frames_received, frames_processed=c.frames_processed,
-                        frames_skipped=self.msg_counters.get("skipped", "Frame") + c.frames_idle,
+                        frames_skipped=self.msg_counters.get("skipped", "Frame"), frames_idle=c.frames_idle,
                         frames_with_fix=c.frames_with_fix, fixes_published=c.fixes_published,
                         active_s=c.active_s, messages_rejected=self.msg_counters.get(REJECTED),
                         detection_ns_mean=int(np.mean(det)) if det else None,

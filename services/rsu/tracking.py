@@ -74,17 +74,18 @@ class VehicleTrack:
         self.pose = self.velocity = self.t_ns = None
         self.misses = 0
 
-    def predict(self, t_ns: int) -> PosePrediction:
+    def predict(self, t_ns: int, extra_radius: float = 0.0) -> PosePrediction:
+        """Where the vehicle is at t_ns (before or after the last fix), with a margin that surely holds it."""
         s = self.settings
-        dt = max(0.0, (t_ns - self.t_ns) * 1e-9)
+        dt = abs(t_ns - self.t_ns) * 1e-9
         x, y, yaw, z = self.pose
         if self.velocity is None:
             # One fix only: the bus may be moving at any legal speed in any direction.
-            radius = s.base_radius_m + MAX_SPEED_MPS * SPEED_MARGIN * dt
+            radius = s.base_radius_m + extra_radius + MAX_SPEED_MPS * SPEED_MARGIN * dt
             yaw_margin = s.max_yaw_rate * dt + 0.05
         else:
             vx, vy, w = self.velocity
             x, y, yaw = x + vx * dt, y + vy * dt, yaw + w * dt
-            radius = s.base_radius_m + s.velocity_error_mps * dt + 0.5 * s.max_accel_mps2 * dt ** 2
+            radius = s.base_radius_m + extra_radius + s.velocity_error_mps * dt + 0.5 * s.max_accel_mps2 * dt ** 2
             yaw_margin = 0.01 + 0.2 * dt
         return PosePrediction(x, y, float(wrap_angle(yaw)), z, radius, yaw_margin, s.z_margin_m)
