@@ -204,6 +204,8 @@ class PoseFix(Message):
     tags_used: list[Annotated[int, Field(ge=0)]] = Field(min_length=1)
     reprojection_rms_px: float = Field(ge=0)
     frame_seq: Count
+    processing_ns: DurationNs | None = Field(default=None, description="RSU time spent detecting and solving "
+                                                                        "this frame (part of the latency)")
 
     @property
     def measurement_delta_ns(self) -> int:

@@ -13,11 +13,13 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
     ("demo",): ("toptag.demo:main", "every service as its own process on a local Zenoh network"),
     ("router",): ("services.router:main", "Zenoh router for the toptag services"),
+    ("certs",): ("services.security:main", "generate a CA and TLS certificates for toptag services"),
     ("rsu",): ("services.rsu.service:main", "RSU service for one camera"),
     ("bus",): ("services.bus.agent:main", "bus agent: announce, fuse fixes with IMU, publish FusedPose"),
     ("monitor",): ("services.monitor:main", "live localization quality of a running intersection"),
     ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
     ("sim", "run"): ("sim.live:main", "live simulator: RSU frames and bus sensors over Zenoh"),
+    ("bench", "latency"): ("services.bench_latency:main", "capture-to-arrival latency through router and RSU"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),
 }

@@ -171,7 +171,8 @@ class RsuService:
             return
         t0 = time.perf_counter_ns()
         result = self.pipeline.process(gray, frame.capture_time_ns)
-        c.detect_ns.append(time.perf_counter_ns() - t0)
+        processing_ns = time.perf_counter_ns() - t0
+        c.detect_ns.append(processing_ns)
         c.frames_processed += 1
         published = 0
         for bus, vr in result.vehicles.items():
@@ -182,7 +183,7 @@ class RsuService:
                           capture_time_ns=frame.capture_time_ns, publish_time_ns=time.time_ns(),
                           x=sol.x, y=sol.y, z=sol.z, yaw=sol.yaw, covariance=np.asarray(sol.covariance).tolist(),
                           method=sol.method, tags_used=[int(t) for t in sol.tags],
-                          reprojection_rms_px=float(sol.rms_px), frame_seq=frame.seq)
+                          reprojection_rms_px=float(sol.rms_px), frame_seq=frame.seq, processing_ns=processing_ns)
             self._fix_pubs[bus].put(fix)
             published += 1
         c.fixes_published += published
