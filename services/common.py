@@ -359,7 +359,7 @@ class MessagePublisher(Generic[M]):
     @property
     def matching(self) -> bool:
         """True when at least one subscriber matches (routing information has arrived)."""
-        return self._pub.matching_status
+        return self._pub.matching_status.matching  # the status object itself is always truthy
 
     def wait_matching(self, timeout: float = 5.0, settle: float = MATCH_SETTLE_S) -> bool:
         """Wait until a subscriber matches, then ``settle`` seconds more (see MATCH_SETTLE_S)."""
@@ -394,7 +394,7 @@ def publish(session: zenoh.Session, key: str, msg: Message) -> None:
 
 def wait_matching(publisher: zenoh.Publisher, timeout: float = 5.0, settle: float = MATCH_SETTLE_S) -> bool:
     """Wait until a plain zenoh Publisher has a matching subscriber (then ``settle`` s). False on timeout."""
-    if not wait_until(lambda: publisher.matching_status, timeout):
+    if not wait_until(lambda: publisher.matching_status.matching, timeout):
         return False
     if settle > 0:
         time.sleep(settle)

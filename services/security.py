@@ -45,9 +45,10 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 from protocol import keys
 
@@ -132,7 +133,7 @@ def _openssl_path(openssl: str | None = None) -> str:
 
 def _run_openssl(exe: str, args: Sequence[str], what: str) -> None:
     try:
-        r = subprocess.run([exe, *args], capture_output=True, text=True, timeout=60)
+        r = subprocess.run([exe, *args], capture_output=True, text=True, timeout=60, check=False)
     except (OSError, subprocess.TimeoutExpired) as e:
         raise SecurityError(f"openssl ({what}) could not run: {e}") from None
     if r.returncode != 0:
@@ -366,7 +367,7 @@ _ALL_KINDS = tuple(keys.LAYOUT)
 
 ROLE_GRANTS: dict[str, tuple[Grant, ...]] = {
     "rsu": (
-        _g("publish PoseFix as itself (any intersection, any bus)", "put", "ingress", _prefix("pose_fix")),
+        _g("publish PoseFix as itself (any intersection, any bus)", "put", "ingress", _OWN["fix_as"]),
         _g("publish its RsuStatus", "put", "ingress", _OWN["status"]),
         _g("learn the subscribers of fixes and status (or its puts are never sent)",
            "declare_subscriber", "egress", _prefix("pose_fix"), _prefix("rsu_status")),
@@ -475,7 +476,7 @@ def _write_manifest(cs: CertSet) -> None:
 def _not_after(exe: str, cert: Path) -> str:
     try:
         r = subprocess.run([exe, "x509", "-in", str(cert), "-noout", "-enddate"], capture_output=True,
-                           text=True, timeout=30)
+                           text=True, timeout=30, check=False)
         return r.stdout.strip().partition("=")[2] or "?"
     except (OSError, subprocess.TimeoutExpired):
         return "?"
