@@ -88,6 +88,9 @@ class ErrorStats:
 class BusScore:
     def __init__(self):
         self.fix_err, self.fused_err, self.latency_ms = ErrorStats(), ErrorStats(), ErrorStats()
+        # Where the latency goes: capture -> fix sent at the RSU (frame transport, decoding, waiting,
+        # processing), of which processing, and fix sent -> arrival here.
+        self.rsu_ms, self.processing_ms, self.fix_transit_ms = ErrorStats(), ErrorStats(), ErrorStats()
         self.fixes = 0
         self.fixes_by_rsu: dict[str, int] = defaultdict(int)
         self.fused = 0
@@ -127,6 +130,10 @@ class Monitor:
             b.fixes += 1
             b.fixes_by_rsu[m.rsu_id] += 1
             b.latency_ms.add((arrival - m.capture_time_ns) * 1e-6)
+            b.rsu_ms.add((m.publish_time_ns - m.capture_time_ns) * 1e-6)
+            b.fix_transit_ms.add((arrival - m.publish_time_ns) * 1e-6)
+            if m.processing_ns is not None:
+                b.processing_ms.add(m.processing_ns * 1e-6)
             b.pending_fixes.append((m.capture_time_ns, m.x, m.y))
 
     def _on_fused(self, m: FusedPose) -> None:
@@ -182,6 +189,9 @@ class Monitor:
                     "fix_pos_max_m": b.fix_err.max,
                     "latency_ms_p50": b.latency_ms.pct(50),
                     "latency_ms_p99": b.latency_ms.pct(99),
+                    "latency_parts_ms_p50": {"capture_to_fix_sent": b.rsu_ms.pct(50),
+                                             "rsu_processing": b.processing_ms.pct(50),
+                                             "fix_transit": b.fix_transit_ms.pct(50)},
                     "fixes_by_rsu": dict(sorted(b.fixes_by_rsu.items())),
                     "fused_samples": b.fused,
                     "fused_ok_samples": b.fused_err.n,
