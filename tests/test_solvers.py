@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 
 import numpy as np
 import pytest
@@ -334,15 +333,3 @@ def test_arguments_are_checked():
     with pytest.raises(ValueError):
         solve(vehicle, obs, "sopt", weighting="principled", sigma_h=0.0)
 
-
-def test_solvers_are_fast():
-    rng = np.random.default_rng(14)
-    vehicle = bundled_vehicle("bus_double")
-    obs = observe(vehicle, at_distance(16.0), noise=0.3, rng=rng)
-    for method, weighting in CONFIGS:
-        solve(vehicle, obs, method, weighting=weighting)
-        t0 = time.perf_counter()
-        for _ in range(20):
-            solve(vehicle, obs, method, weighting=weighting)
-        ms = (time.perf_counter() - t0) / 20 * 1e3
-        assert ms < 25.0, (method, ms)  # ~1–4 ms on an idle core; generous for a shared machine
