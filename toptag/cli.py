@@ -22,6 +22,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "latency"): ("services.bench_latency:main", "capture-to-arrival latency through router and RSU"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),
+    ("eval", "paper"): ("toptag.studies.paper:main", "reproduce the paper's simulation study"),
 }
 
 

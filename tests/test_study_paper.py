@@ -1,0 +1,194 @@
+"""`toptag eval paper`: a small real run (rendered images, the RSU pipeline, every solver, both cores),
+the shape of results.json, the figures, and the study's own models (bound, edge noise, level solver)."""
+import io
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from sim.scene import bundled_vehicle, rsu_camera
+from toptag.detection import TagObservation
+from toptag.geometry import vehicle_to_world
+from toptag.solvers import SIGMA_H_DEFAULT, Limits, position_crlb
+from toptag.studies import paper
+from toptag.studies.paper_models import EdgeNoise, edge_components, measure_noise, pose_bound, solve_level
+
+SAMPLES = 16  # one per whole-metre bin, 5..20 m
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("paper")
+    err = io.StringIO()
+    import contextlib
+
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()) as stdout:
+        code = paper.main(["--out", str(out), "--samples", str(SAMPLES), "--seed", "3",
+                           "--cases", "low_flat,low_bounce", "--workers", "2"])
+    assert code == 0
+    return out, json.loads((out / "results.json").read_text()), err.getvalue(), stdout.getvalue()
+
+
+def test_results_json_has_the_issue_shape(small_run):
+    _, r, _, _ = small_run
+    assert set(r["cases"]) == {"low_flat", "low_bounce"}
+    assert r["image_model"]["describe"] and r["image_model"]["noise_sigma"] == 3.0  # the default model
+    for case in ("low_flat", "low_bounce"):
+        sec = r["cases"][case]
+        assert {"bas", "hopt", "sopt", "sopt_principled", "sopt_level", "sopt_2cam", "sopt_level_2cam"} <= set(sec)
+        for solver, by_d in sec.items():
+            assert list(by_d) == [str(d) for d in range(5, 21)]
+            for d, row in by_d.items():
+                assert {"n", "detected", "pos_rms_m", "pos_max_m", "yaw_rms_deg"} <= set(row)
+                assert row["n"] == SAMPLES // 16
+        crlb = r["crlb"][case]
+        assert list(crlb) == [str(d) for d in range(5, 21)]
+        for row in crlb.values():
+            assert 0.0 < row["sigma_px"] < 0.5 and row["edge_offset_px"] > 0.0 and row["edge_turn_px"] > 0.0
+            assert 0.0 < row["pos_rms_m"] < 0.05 and row["pos_rms_2cam_m"] <= row["pos_rms_m"] * 1.0001
+            assert row["pos_rms_calib_m"] > row["pos_rms_m"]  # calibration error only adds
+    assert set(r["calibration"]) == {"low_flat", "low_bounce"}
+    assert r["samples_per_case"] == SAMPLES and "eval paper" in r["command"]
+
+
+def test_detection_is_the_rsus_and_complete(small_run):
+    _, r, _, _ = small_run
+    for case, det in r["detection"].items():
+        assert sum(v["found"] for v in det.values()) / sum(v["n"] for v in det.values()) >= 0.99, case
+        assert r["targets"][f"detection.{case}"]["met"]
+
+
+def test_sopt_beats_the_papers_bound_at_every_distance(small_run):
+    _, r, _, _ = small_run
+    claim = r["paper_claims"]["sopt_low_bounce_16m"]
+    for d, row in r["cases"]["low_bounce"]["sopt"].items():
+        assert row["detected"] == row["n"], d
+        assert row["pos_rms_m"] < claim["pos_rms_m"] and row["pos_max_m"] < claim["pos_max_m"], d
+        assert row["yaw_rms_deg"] < claim["yaw_rms_deg"], d
+    for d, row in r["cases"]["low_flat"]["bas"].items():
+        assert row["pos_rms_m"] < 1.0, d  # "Bas. stays sub-metre"
+    # The study's level solver is at the bound: one sample per bin is luck, 16 together are not.
+    for case in ("low_flat", "low_bounce"):
+        ratios = [v["crlb_ratio"] for v in r["cases"][case]["sopt_level"].values()]
+        assert 0.6 < math.sqrt(np.mean(np.square(ratios))) < 1.5, (case, ratios)
+
+
+def test_figures_are_valid_pngs_and_progress_is_shown(small_run):
+    out, r, err, stdout = small_run
+    for name in ("paper_low_flat.png", "paper_low_bounce.png", "paper_calibration.png"):
+        img = cv2.imread(str(out / name))
+        assert img is not None and img.shape[0] > 500 and img.shape[1] > 800, name
+        assert img.std() > 10  # not blank
+    assert r["figures"] == ["paper_low_flat.png", "paper_low_bounce.png", "paper_calibration.png"]
+    assert "toptag eval paper [" in err and f"{2 * SAMPLES}/{2 * SAMPLES}" in err
+    assert "low_bounce (cases)" in stdout
+
+
+def test_bad_case_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        paper.main(["--out", str(tmp_path), "--cases", "low_flat,nope"])
+    assert e.value.code == 2 and "nope" in capsys.readouterr().err
+
+
+# ---- the models, on exact geometry ---------------------------------------------------------------
+BUS = bundled_vehicle("bus_double")
+CAM = rsu_camera("sw")
+
+
+def _pose(d=14.0, bearing=0.1, yaw=0.7, dz=0.06):
+    c = CAM.center
+    head = np.arctan2(-c[1], -c[0]) + bearing
+    return c[0] + d * np.cos(head), c[1] + d * np.sin(head), yaw, BUS.height + dz
+
+
+def _observe(pose, rng=None, sigma=0.0, camera=CAM):
+    x, y, yaw, z = pose
+    out = []
+    for tid in BUS.tag_ids:
+        px = camera.project(vehicle_to_world(BUS.tag_corners(tid), x, y, yaw, z), distort=False)
+        if rng is not None:
+            px = px + rng.normal(0.0, sigma, px.shape)
+        out.append(TagObservation(tid, px, camera))
+    return out
+
+
+def test_bound_with_iid_noise_is_position_crlbs():
+    pose = _pose()
+    for sigma_h in (SIGMA_H_DEFAULT, 1e-4):
+        ours = pose_bound(BUS, [(CAM, BUS.tag_ids, 0.07)], pose, sigma_h)
+        ref = position_crlb(BUS, [(CAM, BUS.tag_ids)], pose, 0.07, sigma_h)
+        assert ours[0] == pytest.approx(ref.position_rms, rel=1e-9)
+        assert ours[1] == pytest.approx(ref.yaw_rms, rel=1e-9)
+    # More information never loosens it: a second RSU, no calibration error.
+    one = pose_bound(BUS, [(CAM, BUS.tag_ids, 0.07)], pose, SIGMA_H_DEFAULT)
+    two = pose_bound(BUS, [(CAM, BUS.tag_ids, 0.07), (rsu_camera("se"), BUS.tag_ids, 0.07)], pose, SIGMA_H_DEFAULT)
+    cal = pose_bound(BUS, [(CAM, BUS.tag_ids, 0.07)], pose, SIGMA_H_DEFAULT, (np.radians(0.05), 0.02))
+    assert two[0] < one[0] < cal[0] and cal[0] > 0.02  # a 2 cm camera-position error stays in the pose
+
+
+def test_edge_noise_model_is_measured_from_corner_errors():
+    rng = np.random.default_rng(0)
+    true = CAM.project(vehicle_to_world(BUS.tag_corners(BUS.tag_ids[0]), *_pose()), distort=False)
+    # i.i.d. corner noise on a near-rectangle: offset and turn each carry half the variance.
+    tags = {10: [(true, rng.normal(0, 0.1, (4, 2))) for _ in range(400)], 11: [(true, np.zeros((4, 2)))]}
+    n = measure_noise(tags)[10]
+    assert n.sigma_px == pytest.approx(0.1, rel=0.05)
+    assert n.offset_px == pytest.approx(0.1 / math.sqrt(2), rel=0.15)
+    assert n.turn_px == pytest.approx(0.1 / math.sqrt(2), rel=0.15)
+    # A whole edge moved along its normal is pure offset.
+    u = true[1] - true[0]
+    nrm = np.array([-u[1], u[0]]) / np.linalg.norm(u)
+    err = np.zeros((4, 2))
+    err[0] = err[1] = 0.2 * nrm
+    o, w = edge_components(true, err)
+    assert o[0] == pytest.approx(0.2) and abs(w[0]) < 1e-12
+    assert measure_noise(tags)[11].pooled_m == 1  # one tag is too few: its neighbour lends
+    # A garbled tag is set aside, not counted as noise.
+    tags[10].append((true, np.full((4, 2), 3.0)))
+    assert measure_noise(tags)[10].outlier_tags == 1
+
+
+def test_level_solver_recovers_the_pose_and_ignores_a_garbled_tag():
+    rng = np.random.default_rng(5)
+    pose = _pose(d=16.0, dz=-0.07)
+    limits = Limits(max_position_sigma_m=math.inf)
+    errs, errs_bad, errs_one = [], [], []
+    for _ in range(20):
+        obs = _observe(pose, rng, 0.03)
+        s = solve_level(BUS, obs, SIGMA_H_DEFAULT, limits=limits)
+        assert s.ok and s.tags == tuple(BUS.tag_ids)
+        errs.append(math.hypot(s.x - pose[0], s.y - pose[1]))
+        bad = [TagObservation(o.tag_id, o.corners.copy(), o.camera) for o in obs]
+        bad[0].corners[1] += (2.0, -1.5)  # what the detector now and then returns
+        s = solve_level(BUS, bad, SIGMA_H_DEFAULT, limits=limits)
+        errs_bad.append(math.hypot(s.x - pose[0], s.y - pose[1]))
+        s = solve_level(BUS, obs[1:], SIGMA_H_DEFAULT, limits=limits)
+        errs_one.append(math.hypot(s.x - pose[0], s.y - pose[1]))
+    rms = lambda e: math.sqrt(np.mean(np.square(e)))  # noqa: E731
+    bound = pose_bound(BUS, [(CAM, BUS.tag_ids, EdgeNoise(0.03, 0.03 / math.sqrt(2), 0.03 / math.sqrt(2),
+                                                          (0, 0), 0, 0))], pose, SIGMA_H_DEFAULT)[0]
+    assert rms(errs) < 2.0 * bound + 1e-4
+    assert rms(errs_bad) < 1.5 * rms(errs_one)  # as good as without the garbled tag
+
+
+def test_level_solver_with_calibration_prior_and_two_rsus():
+    rng = np.random.default_rng(9)
+    pose = _pose(d=15.0, dz=0.08)
+    se = rsu_camera("se")
+    obs = _observe(pose, rng, 0.03) + _observe(pose, rng, 0.03, se)
+    s = solve_level(BUS, obs, SIGMA_H_DEFAULT, calib=(np.radians(0.05), 0.02),
+                    limits=Limits(max_position_sigma_m=math.inf))
+    assert s.ok and s.cameras == ("rsu-se", "rsu-sw")
+    assert math.hypot(s.x - pose[0], s.y - pose[1]) < 0.005 and abs(s.z - pose[3]) < 0.01
+
+
+def test_progress_bar_draws_to_its_stream():
+    buf = io.StringIO()
+    bar = paper.Progress(4, "x", stream=buf)
+    for _ in range(4):
+        bar.update()
+    bar.close()
+    text = buf.getvalue()
+    assert "x [" in text and "4/4" in text and "100%" in text
