@@ -9,11 +9,13 @@ setup: $(VENV)/.installed
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $@
 
 demo: setup
+	$(BIN)/toptag demo --duration 60 --report demo-report.json
+
+locate-example: setup
 	$(BIN)/toptag locate --camera examples/rsu-sw-960x720.json --vehicle examples/bus-17.json examples/*.jpg
 
 test: setup
