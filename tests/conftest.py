@@ -7,10 +7,11 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+
+from services.common import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -28,14 +29,6 @@ def free_port():
     return _free_port
 
 
-def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout
-    while True:
-        if predicate():
-            return True
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(interval)
 
 
 # ---- zenoh sessions ---------------------------------------------------------------------------

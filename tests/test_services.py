@@ -8,7 +8,7 @@ import pytest
 
 from protocol import keys
 from protocol.messages import Frame, GnssFix, PoseFix, RsuStatus
-from services.common import MessagePublisher, subscribe_messages
+from services.common import MessagePublisher, subscribe_messages, wait_until
 from sim.render import PlacedVehicle, render_jpeg
 from sim.scenario import bundled_scenario_path
 from sim.scene import bundled_vehicle
@@ -19,15 +19,6 @@ CAMERA = SITE / "rsu-sw.json"
 BUS = SITE / "bus-17.json"
 MAP = SITE / "map.json"
 INSIDE, OUTSIDE = (-30.0, -1.85), (-80.0, -1.85)  # the approach radius of x1 is 45 m
-
-
-def wait_until(predicate, timeout, interval=0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return predicate()
 
 
 @pytest.fixture(scope="module")

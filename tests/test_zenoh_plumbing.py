@@ -13,7 +13,8 @@ import zlib
 
 import pytest
 import zenoh
-from conftest import key_for, wait_until
+from conftest import key_for
+from services.common import wait_until
 
 from protocol import Frame, PoseFix, codec, encode, keys
 from services.common import (

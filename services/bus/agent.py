@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
-import sys
 import threading
 import time
 
@@ -25,16 +23,12 @@ from services.bus.presence import IntersectionPresence
 from services.common import (
     MessageCounters,
     MessagePublisher,
-    ZenohSetupError,
-    add_zenoh_arguments,
     declare_alive,
-    open_session,
     publish,
     serve_session,
     subscribe_messages,
-    zenoh_config_from_args,
 )
-from toptag.inputs import InputError
+from services.runner import add_service_arguments, run_service
 from toptag.site import IntersectionSpec, MapFile
 from toptag.vehicle import Vehicle
 
@@ -176,6 +170,8 @@ class BusAgent:
 
     def close(self) -> None:
         self._leave("agent stopped")
+        log.info("bus %s: %d fixes received, capture-to-arrival latency %s, filter %s", self.bus_id,
+                 self.fixes_received, {k: round(v, 1) for k, v in self.latency_ms().items()}, self.filter.counters())
         for s in self._subs:
             s.close()
         self._fused_pub.close()
@@ -192,37 +188,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vehicle", required=True, help="this bus's vehicle file (its code bag)")
     p.add_argument("--map", required=True, help="map file of intersections")
     p.add_argument("--fused-hz", type=float, default=50.0)
-    p.add_argument("--duration", type=float, default=None)
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    add_zenoh_arguments(p)
+    add_service_arguments(p)
     return p
 
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        stream=sys.stderr)
-    try:
+
+    def load() -> tuple[Vehicle, MapFile]:
         vehicle = Vehicle.load(args.vehicle)
-        map_file = MapFile.load(args.map)
-        keys.imu(vehicle.id)
-    except (InputError, ValueError) as e:
-        print(f"toptag bus: {e}", file=sys.stderr)
-        return 2
-    try:
-        session = open_session(zenoh_config_from_args(args))
-    except ZenohSetupError as e:
-        print(f"toptag bus: {e}", file=sys.stderr)
-        return 1
-    agent = BusAgent(session, vehicle, map_file, args.fused_hz)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: agent.stop())
-    log.info("bus %s ready (%d intersections known)", vehicle.id, len(map_file.intersections))
-    try:
-        agent.run(args.duration)
-    finally:
-        agent.close()
-        session.close()
-        log.info("bus %s stopped: %d fixes received, latency %s", vehicle.id, agent.fixes_received,
-                 {k: round(v, 1) for k, v in agent.latency_ms().items()})
-    return 0
+        keys.imu(vehicle.id)  # the vehicle id must be usable as a bus id on the wire
+        return vehicle, MapFile.load(args.map)
+
+    return run_service("bus", args, load,
+                       lambda session, inputs: BusAgent(session, *inputs, fused_hz=args.fused_hz),
+                       lambda inputs: f"bus {inputs[0].id} ({len(inputs[1].intersections)} intersections known)")

@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 import logging
 import queue
-import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -26,18 +24,14 @@ from services.common import (
     REJECTED,
     MessageCounters,
     MessagePublisher,
-    ZenohSetupError,
-    add_zenoh_arguments,
     latest_receiver,
-    open_session,
     query_sessions,
     subscribe_messages,
     watch_buses,
-    zenoh_config_from_args,
 )
 from services.rsu.pipeline import PipelineSettings, RsuPipeline
+from services.runner import add_service_arguments, run_service
 from toptag.camera import Camera
-from toptag.inputs import InputError
 from toptag.vehicle import Vehicle
 
 log = logging.getLogger("toptag.rsu")
@@ -242,36 +236,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", required=True, help="camera calibration JSON; its id is the RSU id")
     p.add_argument("--intersection", required=True, help="intersection id (as in the map file)")
     p.add_argument("--method", choices=("bas", "hopt", "sopt"), default="sopt")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    add_zenoh_arguments(p)
+    add_service_arguments(p)
     return p
 
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        stream=sys.stderr)
-    try:
+
+    def load() -> Camera:
         camera = Camera.load(args.camera)
         keys.frame(camera.id)  # the camera id must be usable as an RSU id on the wire
         keys.approach(args.intersection, "x")
-    except (InputError, ValueError) as e:
-        print(f"toptag rsu: {e}", file=sys.stderr)
-        return 2
-    try:
-        session = open_session(zenoh_config_from_args(args))
-    except ZenohSetupError as e:
-        print(f"toptag rsu: {e}", file=sys.stderr)
-        return 1
-    service = RsuService(session, camera, args.intersection, PipelineSettings(method=args.method))
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: service.stop())
-    log.info("RSU %s at intersection %s ready (%dx%d)", camera.id, args.intersection, camera.width, camera.height)
-    try:
-        service.run(args.duration)
-    finally:
-        service.close()
-        session.close()
-        log.info("RSU %s stopped", camera.id)
-    return 0
+        return camera
+
+    return run_service(
+        "rsu", args, load,
+        lambda session, camera: RsuService(session, camera, args.intersection, PipelineSettings(method=args.method)),
+        lambda camera: f"RSU {camera.id} at intersection {args.intersection} ({camera.width}x{camera.height})")
