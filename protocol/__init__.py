@@ -23,11 +23,10 @@ from protocol.messages import (
     PoseFix,
     RsuStatus,
     check_id,
-    wrap_angle,
 )
 
 __all__ = [
     "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "Frame", "FusedPose",
     "FusionHealth", "GnssFix", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuStatus",
-    "check_id", "codec", "decode", "decode_any", "encode", "keys", "wrap_angle",
+    "check_id", "codec", "decode", "decode_any", "encode", "keys",
 ]

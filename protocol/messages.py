@@ -14,7 +14,6 @@ only through :mod:`protocol.codec`.
 """
 from __future__ import annotations
 
-import math
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
@@ -28,6 +27,7 @@ from pydantic import (
     model_validator,
 )
 
+from toptag.geometry import wrap_angle
 from toptag.vehicle import VehicleFile
 
 PROTOCOL_VERSION = 1
@@ -58,12 +58,6 @@ Id = Annotated[str, AfterValidator(check_id)]
 TimeNs = Annotated[int, Field(ge=0, description="integer nanoseconds since the Unix epoch")]
 DurationNs = Annotated[int, Field(ge=0, description="integer nanoseconds")]
 Count = Annotated[int, Field(ge=0)]
-
-
-def wrap_angle(a: float) -> float:
-    """Wrap an angle to (-pi, pi]."""
-    w = math.remainder(a, 2.0 * math.pi)  # in [-pi, pi]
-    return math.pi if w == -math.pi else w
 
 
 def _check_covariance(v: list[list[float]]) -> list[list[float]]:

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim.scene import LANE_WIDTH, ROAD_HALF_WIDTH
+from toptag.geometry import wrap_angle
 
 MAX_SPEED = 30.0 / 3.6  # 8.33 m/s
 INNER_LANE = LANE_WIDTH / 2  # lateral offset of the inner lane centre from the road centre line
@@ -35,9 +36,7 @@ STOP_LINE = ROAD_HALF_WIDTH + 2.0  # distance from the intersection centre of th
 APPROACH_YAW = {"w": 0.0, "s": np.pi / 2, "e": np.pi, "n": -np.pi / 2}  # heading when entering
 
 
-def _wrap(a):
-    w = np.mod(np.asarray(a, dtype=float) + np.pi, 2 * np.pi) - np.pi
-    return np.where(w == -np.pi, np.pi, w)
+_wrap = wrap_angle
 
 
 def _out(a, scalar: bool):

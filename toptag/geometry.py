@@ -1,14 +1,18 @@
 """Small rigid-body helpers shared by the solvers, the simulator and the filter."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
 def wrap_angle(a):
-    """Wrap to (-pi, pi]."""
+    """Wrap an angle (float) or an array of angles to (-pi, pi]."""
+    if np.ndim(a) == 0:  # the scalar path is hot (the filter wraps at every IMU step)
+        w = math.remainder(float(a), 2.0 * math.pi)  # in [-pi, pi]
+        return math.pi if w == -math.pi else w
     w = np.mod(np.asarray(a, dtype=float) + np.pi, 2 * np.pi) - np.pi
-    w = np.where(w == -np.pi, np.pi, w)
-    return float(w) if np.ndim(w) == 0 else w
+    return np.where(w == -np.pi, np.pi, w)
 
 
 def rot_z(yaw: float) -> np.ndarray:

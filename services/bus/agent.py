@@ -16,7 +16,16 @@ import time
 import numpy as np
 
 from protocol import keys
-from protocol.messages import Approach, ClockInfo, FusedPose, FusionHealth, GnssFix, Imu, Leave, PoseFix
+from protocol.messages import (
+    Approach,
+    ClockInfo,
+    FusedPose,
+    FusionHealth,
+    GnssFix,
+    Imu,
+    Leave,
+    PoseFix,
+)
 from services.bus.filter import BusFilter, FilterConfig
 from services.bus.fixes import PoseFix as FilterFix
 from services.bus.presence import IntersectionPresence

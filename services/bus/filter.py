@@ -42,6 +42,7 @@ from typing import NamedTuple
 import numpy as np
 
 from services.bus.fixes import FixOutcome, FixRecord, PoseFix, count_outcomes
+from toptag.geometry import wrap_angle
 
 STATE_NAMES = ("x", "y", "yaw", "speed", "yaw_rate", "gyro_bias", "wheel_scale")
 NX = 7
@@ -49,20 +50,13 @@ IX, IY, IYAW, IV, IW, IB, IK = range(NX)
 ACQUIRING, TRACKING = 1, 2
 _MODE_NAMES = {ACQUIRING: "acquiring", TRACKING: "tracking"}
 _EYE = np.eye(NX)
-_TWO_PI = 2 * math.pi
 
 # chi-square quantiles, 3 dof (avoid importing scipy in the service)
 _CHI2_3 = {0.95: 7.814727903251178, 0.99: 11.344866730144373, 0.995: 12.838156466598647,
            0.999: 16.26623619623813, 0.9999: 21.10751340254392}
 
 
-def wrap(a: float) -> float:
-    """Wrap an angle to (-pi, pi]."""
-    w = math.fmod(a + math.pi, _TWO_PI)
-    if w < 0:
-        w += _TWO_PI
-    w -= math.pi
-    return math.pi if w == -math.pi else w
+wrap = wrap_angle  # the filter's name for it
 
 
 def chi2_3dof(p: float) -> float:
