@@ -12,6 +12,7 @@ from protocol.messages import (
     ActiveSessions,
     Approach,
     ClockInfo,
+    CoarsePosition,
     Frame,
     FusedPose,
     FusionHealth,
@@ -26,7 +27,7 @@ from protocol.messages import (
 )
 
 __all__ = [
-    "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "Frame", "FusedPose",
+    "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "CoarsePosition", "Frame", "FusedPose",
     "FusionHealth", "GnssFix", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuStatus",
     "check_id", "codec", "decode", "decode_any", "encode", "keys",
 ]

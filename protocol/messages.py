@@ -121,6 +121,19 @@ class ClockInfo(BaseModel):
         default=None, description="bound on |this clock - reference|, if known")
 
 
+class CoarsePosition(BaseModel):
+    """Where the bus thinks it is, roughly (GNSS or its fused pose): lets an RSU skip searching while
+    the bus cannot be in its view yet."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    t_ns: TimeNs
+    x: float
+    y: float
+    sigma_m: float = Field(gt=0)
+    source: Literal["gnss", "fused"] = "gnss"
+
+
 class Approach(Message):
     """A bus announces that it approaches an intersection, with its code bag (the vehicle file).
 
@@ -134,6 +147,7 @@ class Approach(Message):
     reference_time_ns: TimeNs = Field(description="bus clock when the message was generated")
     clock: ClockInfo = ClockInfo()
     seq: Count = 0
+    position: CoarsePosition | None = None
 
     @model_validator(mode="after")
     def _bus_matches_vehicle(self) -> Approach:

@@ -19,7 +19,14 @@ import numpy as np
 
 from protocol import keys
 from protocol.messages import Approach, Frame, PoseFix
-from services.common import MessagePublisher, declare_alive, open_session, publish, serve_session, subscribe_messages
+from services.common import (
+    MessagePublisher,
+    declare_alive,
+    open_session,
+    publish,
+    serve_session,
+    subscribe_messages,
+)
 from services.processes import TOPTAG, ProcessGroup
 
 

@@ -9,7 +9,12 @@ import sys
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from services.common import ZenohSetupError, add_zenoh_arguments, open_session, zenoh_config_from_args
+from services.common import (
+    ZenohSetupError,
+    add_zenoh_arguments,
+    open_session,
+    zenoh_config_from_args,
+)
 from toptag.inputs import InputError
 
 log = logging.getLogger("toptag")

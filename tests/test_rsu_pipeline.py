@@ -174,3 +174,18 @@ def test_another_rsus_fix_replaces_acquisition(bus_pass):
     far.hint(bus.id, t_ns, 40.0, 40.0, 0.0, 3.0)  # behind the camera's view
     res = far.process(img, t_ns)
     assert res.vehicles[bus.id].mode == "out_of_view" and res.pixels_searched == 0 and not res.acquired
+
+
+def test_coarse_position_far_away_waits_instead_of_searching(bus_pass):
+    """The bus's own GNSS position (in its Approach) 40 m away: it cannot be in view, nothing is searched;
+    a position near the bus lets acquisition run and find it."""
+    camera, bus, frames = bus_pass
+    t_ns, img, truth, _ = next(f for f in frames if f[3])
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    p.coarse_position(bus.id, t_ns, -9.0 - 30.0, -9.0 - 25.0, 2.0)  # behind the south-west RSU
+    res = p.process(img, t_ns)
+    assert res.vehicles[bus.id].mode == "out_of_view" and not res.acquired and res.pixels_searched == 0
+    p.coarse_position(bus.id, t_ns, truth[0] + 1.5, truth[1] - 1.0, 2.0)
+    res = p.process(img, t_ns)
+    assert res.acquired and res.vehicles[bus.id].solution is not None and res.vehicles[bus.id].solution.ok

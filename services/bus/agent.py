@@ -19,6 +19,7 @@ from protocol import keys
 from protocol.messages import (
     Approach,
     ClockInfo,
+    CoarsePosition,
     FusedPose,
     FusionHealth,
     GnssFix,
@@ -71,6 +72,7 @@ class BusAgent:
         self._queryable = None
         self._fix_sub = None
         self._last_announce = 0.0
+        self._position: CoarsePosition | None = None
         self._fused_pub = MessagePublisher(session, keys.fused_pose(self.bus_id), FusedPose)
         self._subs = [
             subscribe_messages(session, keys.imu(self.bus_id), Imu, self._on_imu, self.counters, log),
@@ -102,15 +104,16 @@ class BusAgent:
             self.filter.add_fix(FilterFix.from_any(m), arrival_ns=now)
 
     # ---- position and sessions ------------------------------------------------------------------
-    def position(self, now_ns: int) -> tuple[float, float] | None:
+    def position(self, now_ns: int) -> CoarsePosition | None:
         """Fused pose when the filter is healthy, else the latest GNSS fix (metres are enough here)."""
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
             gnss = self._gnss
         if est is not None and est.health.status == "ok":
-            return est.x, est.y
+            sigma = float(np.sqrt(max(est.cov[0, 0], est.cov[1, 1], 1e-6)))
+            return CoarsePosition(t_ns=now_ns, x=est.x, y=est.y, sigma_m=sigma, source="fused")
         if gnss is not None and (now_ns - gnss.t_ns) * 1e-9 < 5.0:
-            return gnss.x, gnss.y
+            return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss")
         return None
 
     def _enter(self, inter: IntersectionSpec) -> None:
@@ -127,7 +130,8 @@ class BusAgent:
 
     def _announce(self) -> None:
         a = self._approach
-        self._approach = a.model_copy(update={"reference_time_ns": time.time_ns(), "seq": a.seq + 1})
+        self._approach = a.model_copy(update={"reference_time_ns": time.time_ns(), "seq": a.seq + 1,
+                                              "position": self._position})
         publish(self.session, keys.approach(a.intersection_id, self.bus_id), self._approach)
         self._last_announce = time.monotonic()
 
@@ -149,8 +153,9 @@ class BusAgent:
     def step(self, now_ns: int) -> None:
         """Presence, repeated announcements and the fused output, once per output period."""
         pos = self.position(now_ns)
+        self._position = pos
         if pos is not None:
-            for event, inter in self.presence.update(*pos):
+            for event, inter in self.presence.update(pos.x, pos.y):
                 if event == "leave":
                     self._leave("left the approach radius")
                 else:

@@ -15,10 +15,28 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.rsu.regions import Band, Box, acquisition_bands, merge_boxes, projected_side_px, tag_region
-from services.rsu.tracking import TrackSettings, VehicleTrack
+from services.rsu.regions import (
+    Band,
+    Box,
+    acquisition_bands,
+    disc_in_view,
+    merge_boxes,
+    projected_side_px,
+    tag_region,
+)
+from services.rsu.tracking import (
+    MAX_SPEED_MPS,
+    SPEED_MARGIN,
+    TrackSettings,
+    VehicleTrack,
+)
 from toptag.camera import Camera
-from toptag.detection import DetectorSettings, RawDetection, TagDetector, assign_to_vehicles
+from toptag.detection import (
+    DetectorSettings,
+    RawDetection,
+    TagDetector,
+    assign_to_vehicles,
+)
 from toptag.geometry import vehicle_to_world
 from toptag.solvers import PoseSolution, solve
 from toptag.vehicle import Vehicle
@@ -47,6 +65,9 @@ class PipelineSettings(BaseModel):
     # two cameras' calibration differences.
     hint_max_age_s: float = 1.0
     hint_margin_m: float = 0.3
+    # The bus's own coarse position (GNSS, in its Approach) says when it cannot be in view yet, so that
+    # acquisition waits; trusted for this long, at 3 sigma plus the distance it may have driven since.
+    coarse_max_age_s: float = 2.5
     crop_pad_px: float = 6.0
     workers: int = 2
 
@@ -122,6 +143,7 @@ class RsuPipeline:
         self._pools: dict[tuple[str, ...], _DetectorPool] = {}
         self._bands: dict[tuple[float, float], list[Band]] = {}
         self._hints: dict[str, VehicleTrack] = {}
+        self._coarse: dict[str, tuple[int, float, float, float]] = {}  # id -> (t_ns, x, y, sigma)
         self._last_acquire_ns: int | None = None
 
     # ---- code bags ----------------------------------------------------------------------------
@@ -133,6 +155,21 @@ class RsuPipeline:
         self.vehicles.pop(vehicle_id, None)
         self.tracks.pop(vehicle_id, None)
         self._hints.pop(vehicle_id, None)
+        self._coarse.pop(vehicle_id, None)
+
+    def coarse_position(self, vehicle_id: str, t_ns: int, x: float, y: float, sigma_m: float) -> None:
+        """The vehicle's own rough position (metres of error): used only to know it is out of view."""
+        if vehicle_id in self.vehicles:
+            self._coarse[vehicle_id] = (t_ns, x, y, sigma_m)
+
+    def _surely_out_of_view(self, vid: str, t_ns: int) -> bool:
+        c = self._coarse.get(vid)
+        if c is None or abs(t_ns - c[0]) * 1e-9 > self.settings.coarse_max_age_s:
+            return False
+        t, x, y, sigma = c
+        v = self.vehicles[vid]
+        reach = 3 * sigma + MAX_SPEED_MPS * SPEED_MARGIN * abs(t_ns - t) * 1e-9 + np.hypot(v.length, v.width) / 2
+        return not disc_in_view(self.camera, x, y, reach, v.height - 0.3, v.height + 0.3)
 
     def hint(self, vehicle_id: str, t_ns: int, x: float, y: float, yaw: float, z: float) -> None:
         """A pose of an announced vehicle from elsewhere (another RSU's fix)."""
@@ -145,6 +182,7 @@ class RsuPipeline:
         for t in self.tracks.values():
             t.reset()
         self._hints.clear()
+        self._coarse.clear()
 
     def _pool(self) -> _DetectorPool:
         families = tuple(sorted({v.family for v in self.vehicles.values()}))
@@ -163,7 +201,9 @@ class RsuPipeline:
         pool = self._pool()
         tracked = [vid for vid, tr in self.tracks.items() if tr.found and self.settings.tracking]
         hinted = [vid for vid in self.vehicles if vid not in tracked and self._fresh_hint(vid, t_ns)]
-        unfound = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted]
+        away = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted
+                and self._surely_out_of_view(vid, t_ns)]
+        unfound = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted and vid not in away]
         t0 = time.perf_counter()
 
         jobs: list[DetectJob] = []
@@ -194,8 +234,8 @@ class RsuPipeline:
         for vid, vehicle in self.vehicles.items():
             obs = observed.get(vid, [])
             was_tracked = vid in tracked
-            if vid in hinted:
-                mode = "hinted" if regions_of[vid] else "out_of_view"
+            if vid in hinted or vid in away:
+                mode = "hinted" if regions_of.get(vid) else "out_of_view"
             else:
                 mode = "tracked" if was_tracked else ("acquired" if result.acquired else "waiting")
             sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None

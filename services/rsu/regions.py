@@ -62,6 +62,20 @@ def tag_region(camera: Camera, vehicle: Vehicle, tag_id: int, x: float, y: float
     return bounding_box(camera, np.vstack(pts), pad_px)
 
 
+def disc_in_view(camera: Camera, x: float, y: float, radius: float, z_low: float, z_high: float,
+                 spacing: float = 0.75) -> bool:
+    """Could anything within `radius` of (x, y), between heights z_low and z_high, appear in the image?
+    (Sampled every `spacing` metres: finer than any tag plate.)"""
+    n = int(np.ceil(radius / spacing))
+    g = np.arange(-n, n + 1) * spacing
+    gx, gy = np.meshgrid(g, g)
+    inside = gx ** 2 + gy ** 2 <= radius ** 2
+    pts = np.column_stack([gx[inside] + x, gy[inside] + y])
+    world = np.vstack([np.column_stack([pts, np.full(len(pts), z)]) for z in (z_low, z_high)])
+    front = camera.to_camera(world)[:, 2] > 0.1
+    return bool(front.any() and camera.in_image(camera.project(world[front])).any())
+
+
 def merge_boxes(boxes: list[Box], gap: int = 0) -> list[Box]:
     """Union overlapping boxes until the rest are disjoint (a tag inside one input box stays inside one output)."""
     out = [b for b in boxes if b is not None]

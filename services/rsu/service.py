@@ -115,6 +115,7 @@ class RsuService:
                 self._start_session(approach)
 
     def _start_session(self, a: Approach) -> None:
+        self._note_position(a)
         known = self._sessions.get(a.bus_id)
         if known is not None and known.vehicle == a.vehicle:
             self._sessions[a.bus_id] = a  # a repeated Approach: nothing changes
@@ -133,9 +134,15 @@ class RsuService:
                         "will not be used for either", a.bus_id, sorted(t for _, t in clash))
         self._sessions[a.bus_id] = a
         self.pipeline.add_vehicle(vehicle)
+        self._note_position(a)
         self._fix_pubs.setdefault(a.bus_id, MessagePublisher(
             self.session, keys.pose_fix(self.intersection, a.bus_id, self.rsu_id), PoseFix))
         log.info("session start: bus %s (tags %s)", a.bus_id, vehicle.tag_ids)
+
+    def _note_position(self, a: Approach) -> None:
+        p = a.position
+        if p is not None:
+            self.pipeline.coarse_position(a.bus_id, p.t_ns, p.x, p.y, p.sigma_m)
 
     def _end_session(self, bus: str, why: str) -> None:
         if self._sessions.pop(bus, None) is None:
