@@ -517,7 +517,9 @@ def run(out: Path, samples: int = 200, seed: int = 0, cases=tuple(CASES), worker
             if bar:
                 bar.update(note=done[-1]["case"])
     else:
-        ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else None)
+        # Not fork: a process that already runs threads (Zenoh, OpenCV, a test runner) can hand a forked
+        # child a lock held by a thread that does not exist there (seen: workers hung in cv2).
+        ctx = multiprocessing.get_context("spawn")
         with ctx.Pool(workers, initializer=_worker_init, maxtasksperchild=None) as pool:
             for r in pool.imap_unordered(run_sample, tasks, chunksize=1):
                 done.append(r)
