@@ -5,8 +5,18 @@ import math
 import numpy as np
 import pytest
 
-from sim.motion import (MAX_SPEED, ImuModel, Path, RoofBounce, Segment, SpeedProfile, bus_trajectory,
-                        dead_reckon, route_path, turn_segments)
+from sim.motion import (
+    MAX_SPEED,
+    ImuModel,
+    Path,
+    RoofBounce,
+    Segment,
+    SpeedProfile,
+    bus_trajectory,
+    dead_reckon,
+    route_path,
+    turn_segments,
+)
 from sim.scene import LANE_WIDTH, ROAD_HALF_WIDTH
 
 KINDS = ["straight", "left", "right", "stop"]

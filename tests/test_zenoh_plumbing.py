@@ -14,7 +14,6 @@ import zlib
 import pytest
 import zenoh
 from conftest import key_for
-from services.common import wait_until
 
 from protocol import Frame, PoseFix, codec, encode, keys
 from services.common import (
@@ -32,6 +31,7 @@ from services.common import (
     serve_session,
     subscribe_messages,
     wait_matching,
+    wait_until,
     watch_buses,
     zenoh_config,
     zenoh_config_from_args,

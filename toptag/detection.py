@@ -65,7 +65,9 @@ class TagDetector:
     _alive: list["TagDetector"] = []
 
     def __init__(self, families=("tag36h11",), settings: DetectorSettings | None = None):
-        from pupil_apriltags import Detector  # heavy import; only where detection happens
+        from pupil_apriltags import (
+            Detector,  # heavy import; only where detection happens
+        )
 
         self.settings = settings or DetectorSettings()
         self.families = tuple(sorted(set(families)))

@@ -9,16 +9,17 @@ from toptag.camera import Camera
 from toptag.detection import DetectorSettings
 from toptag.images import read_gray
 from toptag.inputs import InputError
+from toptag.solvers import METHODS
 from toptag.vehicle import Vehicle
-
-METHODS = ("bas", "hopt", "sopt")
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag locate", description=__doc__)
     p.add_argument("--camera", required=True, help="camera calibration JSON (SPEC.md)")
     p.add_argument("--vehicle", required=True, help="vehicle / code bag JSON (SPEC.md)")
-    p.add_argument("--method", choices=METHODS, default="sopt")
+    p.add_argument("--method", choices=METHODS, default="level",
+                   help="level: level roof with height prior (default, the most accurate); sopt: the paper's "
+                        "S.Opt.; hopt: H.Opt.; bas: Bas.")
     p.add_argument("--weighting", choices=("paper", "principled"), default="principled",
                    help="S.Opt. residual weighting (paper: mu = 1; principled: sigma_px / sigma_h)")
     p.add_argument("--max-hamming", type=int, default=0, help="accepted bit errors per tag (default 0)")

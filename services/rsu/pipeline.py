@@ -45,7 +45,7 @@ from toptag.vehicle import Vehicle
 class PipelineSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    method: str = "sopt"
+    method: str = "level"  # toptag.solvers: bas | hopt | sopt | level (level roof, edge-noise weighting)
     weighting: str = "principled"
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     tracking: bool = True

@@ -32,6 +32,7 @@ from services.common import (
 from services.rsu.pipeline import PipelineSettings, RsuPipeline
 from services.runner import add_service_arguments, run_service
 from toptag.camera import Camera
+from toptag.solvers import METHODS
 from toptag.vehicle import Vehicle
 
 log = logging.getLogger("toptag.rsu")
@@ -242,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag rsu", description=__doc__.split("\n\n")[0])
     p.add_argument("--camera", required=True, help="camera calibration JSON; its id is the RSU id")
     p.add_argument("--intersection", required=True, help="intersection id (as in the map file)")
-    p.add_argument("--method", choices=("bas", "hopt", "sopt"), default="sopt")
+    p.add_argument("--method", choices=METHODS, default=PipelineSettings().method)
     add_service_arguments(p)
     return p
 

@@ -9,35 +9,53 @@ from toptag.detection import TagObservation
 from toptag.solvers.bas import fit_bas
 from toptag.solvers.common import SIGMA_H_DEFAULT, Fit, PoseSolution
 from toptag.solvers.hopt import fit_hopt, initial_pose
-from toptag.solvers.model import Corners, build_corners
-from toptag.solvers.robust import Limits, implausibility, screen_outliers
+from toptag.solvers.level import TURN_RATIO, solve_level_corners
+from toptag.solvers.model import Calibration, Corners, build_corners
+from toptag.solvers.robust import (
+    Limits,
+    implausibility,
+    screen_outliers,
+    screening_fits,
+)
 from toptag.solvers.sopt import HEIGHT_MODELS, WEIGHTINGS, fit_sopt
 from toptag.vehicle import Vehicle
 
-METHODS = ("bas", "hopt", "sopt")
+METHODS = ("bas", "hopt", "sopt", "level")
+_ALIASES = {"soptlevel": "level", "levelroof": "level"}
 
 
 def canonical_method(method: str) -> str:
-    """'Bas.', 'H.Opt.', 'h-opt', 'SOPT' ... to 'bas' | 'hopt' | 'sopt'."""
+    """'Bas.', 'H.Opt.', 'h-opt', 'SOPT', 'level', 'sopt_level', 'S.Opt. level' ... to
+    'bas' | 'hopt' | 'sopt' | 'level'."""
     m = "".join(ch for ch in str(method).lower() if ch.isalnum())
+    m = _ALIASES.get(m, m)
     if m not in METHODS:
-        raise ValueError(f"unknown solver {method!r} (known: Bas., H.Opt., S.Opt.)")
+        raise ValueError(f"unknown solver {method!r} (known: Bas., H.Opt., S.Opt., level)")
     return m
 
 
 def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "sopt", *,
           weighting: str = "paper", sigma_px: float | None = None, sigma_h: float = SIGMA_H_DEFAULT,
           mu: float = 1.0, robust: bool = True, height_model: str = "common",
-          limits: Limits | None = None) -> PoseSolution:
-    """Estimate the vehicle pose with Bas., H.Opt. or S.Opt.
+          limits: Limits | None = None, calib_rot_sigma: float = 0.0, calib_trans_sigma: float = 0.0,
+          turn_ratio: float | None = TURN_RATIO) -> PoseSolution:
+    """Estimate the vehicle pose with Bas., H.Opt., S.Opt. or the level-roof solver ("level").
 
     observations: TagObservations of this vehicle's tags from one or more cameras (ideal pixels).
     sigma_px: corner noise per pixel coordinate if known; else estimated from the residuals.
-    sigma_h: standard deviation of the true roof height about vehicle.height (H.Opt.'s covariance and
-    S.Opt.'s principled weighting and covariance; the outlier and layout tests allow for it).
+    sigma_h: standard deviation of the true roof height about vehicle.height (H.Opt.'s covariance,
+    S.Opt.'s principled weighting and covariance, the level solver's height prior; the outlier and layout
+    tests allow for it).
     mu: S.Opt.'s paper weighting of the height residuals (1/m). height_model: "common" (the roof is off
     by one offset, a bounce) or "independent" (each corner by its own), for S.Opt.
-    robust: drop tags whose corners disagree with the rest. limits: when to refuse a pose.
+    calib_rot_sigma (rad, about each camera axis), calib_trans_sigma (m, camera centre per world axis):
+    how well the cameras' extrinsics are known (0: exactly). The outlier and layout tests and the
+    covariances allow for it, so that cameras disagreeing by their calibration error are not refused;
+    the level solver estimates every camera's correction with that prior.
+    turn_ratio: the level solver's corner-noise model (level.py: sigma of an edge line's turn over its
+    offset's; None: independent corner coordinates). The other solvers assume independent coordinates.
+    robust: drop tags whose corners disagree with the rest (and, level, weigh down tags whose own
+    corners misfit a tag's shape). limits: when to refuse a pose.
     Never raises on bad data: an unusable or implausible result comes back with ok=False and `error`."""
     method = canonical_method(method)
     if weighting not in WEIGHTINGS:
@@ -48,6 +66,9 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
         raise ValueError("sigma_px must be positive (or None to estimate it)")
     if not sigma_h >= 0 or (method == "sopt" and weighting == "principled" and not sigma_h > 0):
         raise ValueError("sigma_h must be >= 0, and > 0 for principled S.Opt.")
+    if turn_ratio is not None and not turn_ratio > 0:
+        raise ValueError("turn_ratio must be positive (or None for independent corner coordinates)")
+    calib = Calibration(float(calib_rot_sigma), float(calib_trans_sigma))
     limits = limits or Limits()
     h = float(vehicle.height)
 
@@ -57,22 +78,36 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
         return PoseSolution(ok=False, method=method, dropped_tags=dropped,
                             error=f"no usable tag observations ({why})")
     corners = build_corners(vehicle, usable)
-    if robust and len(corners.units) >= 2:
-        with np.errstate(all="ignore"):
-            keep, outliers = screen_outliers(corners, h, sigma_px, sigma_h, limits.outlier_alpha)
-        dropped += outliers
-        corners = corners.subset(keep)
-
+    # The level solver's corner-noise model also judges its outliers; the others assume i.i.d. corners.
+    noise_model = turn_ratio if method == "level" else None
     # Hopeless data (garbage corners) produce infinities on the way to an ok=False; not worth warnings.
     with np.errstate(all="ignore"):
+        keep, screened = list(range(len(corners.units))), None
+        if robust and len(corners.units) >= 2:
+            try:
+                screened = screening_fits(corners, h, sigma_px, sigma_h, noise_model)
+                keep, outliers = screen_outliers(corners, h, sigma_px, sigma_h, limits.outlier_alpha, calib=calib,
+                                                 turn_ratio=noise_model, fits=screened)
+            except (np.linalg.LinAlgError, FloatingPointError, ValueError) as e:
+                return _failed(method, corners, dropped, f"solver failed: {e}")
+            dropped += outliers
         try:
-            fits = _fit(method, corners, h, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
-                        height_model=height_model)
+            if method == "level":
+                fit, misfits = solve_level_corners(corners, keep, h, sigma_h=sigma_h, sigma_px=sigma_px, calib=calib,
+                                                   turn_ratio=turn_ratio, fits=screened if robust else None,
+                                                   weigh_misfits=robust, calib_alpha=limits.outlier_alpha)
+                dropped += misfits
+                fits = None if fit is None else (fit, fit)
+            else:
+                corners = corners.subset(keep) if len(keep) < len(corners.units) else corners
+                fits = _fit(method, corners, h, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
+                            height_model=height_model, calib=calib)
         except (np.linalg.LinAlgError, FloatingPointError, ValueError) as e:
             return _failed(method, corners, dropped, f"solver failed: {e}")
         if fits is None:
             return _failed(method, corners, dropped, "no corner back-projects onto the roof plane")
         fit, layout_fit = fits
+        corners = fit.corners
         error = implausibility(fit, layout_fit, h, limits, sigma_px)
     if error:
         return _failed(method, corners, dropped, error, fit)
@@ -82,20 +117,20 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
 
 
 def _fit(method: str, c: Corners, h: float, *, weighting, sigma_px, sigma_h, mu,
-         height_model) -> tuple[Fit, Fit] | None:
+         height_model, calib: Calibration) -> tuple[Fit, Fit] | None:
     """(the method's fit, the H.Opt. fit that judges the corners against the tag layout)."""
     bas = fit_bas(c, sigma_px, covariance=(method == "bas"))
     yaw0 = float(bas.theta[2]) if bas.converged and np.all(np.isfinite(bas.theta)) else None
     start = initial_pose(c, h, yaw0)
     if start is None:
         return None
-    hopt = fit_hopt(c, h, start, sigma_px, sigma_h)
+    hopt = fit_hopt(c, h, start, sigma_px, sigma_h, calib)
     if method == "bas":
         return bas, hopt
     if method == "hopt":
         return hopt, hopt
     sopt = fit_sopt(c, h, hopt.theta, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
-                    sigma_weight=hopt.sigma_px, height_model=height_model)
+                    height_model=height_model, calib=calib)
     return sopt, hopt
 
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from toptag.geometry import wrap_angle
-from toptag.solvers.model import Corners, IX, IY, IYAW
+from toptag.solvers.model import IX, IY, IYAW, Corners
 
 SIGMA_H_DEFAULT = 0.2 / math.sqrt(12.0)  # a uniform ±10 cm roof bounce
 SIGMA_FLOOR_PX = 0.1  # no detector is better than this; keeps exact data from claiming zero variance
@@ -96,6 +96,9 @@ class Fit:
     # error leaves unexplained, so that a bouncing bus is not mistaken for bad corners.
     fit_rms_px: float = math.nan
     height_rms_px: float = 0.0
+    # Per-corner RMS of the pixel residual that one-sigma errors of the cameras' extrinsics leave (when
+    # their uncertainty is given): cameras that disagree by their calibration error are not bad corners.
+    calib_rms_px: float = 0.0
     note: str | None = None  # why the fit is not usable, if the solver itself knows
 
     def solution(self) -> PoseSolution:

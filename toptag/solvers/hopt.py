@@ -6,9 +6,24 @@ import math
 import numpy as np
 
 from toptag.geometry import rot_z
-from toptag.solvers.common import Fit, estimate_sigma, procrustes_planar, rms, safe_inverse
+from toptag.solvers.common import (
+    Fit,
+    estimate_sigma,
+    procrustes_planar,
+    rms,
+    safe_inverse,
+)
 from toptag.solvers.lm import levenberg_marquardt
-from toptag.solvers.model import IZ, Corners, evaluate, planar_theta
+from toptag.solvers.model import (
+    IZ,
+    KNOWN,
+    Calibration,
+    Corners,
+    calib_columns,
+    calib_residual_rms,
+    evaluate,
+    planar_theta,
+)
 
 PLANAR = [0, 1, 2]  # x, y, yaw within theta
 
@@ -39,9 +54,10 @@ def initial_pose(c: Corners, h: float, yaw0: float | None) -> tuple[float, float
 
 
 def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: float | None = None,
-             sigma_h: float = 0.0) -> Fit:
+             sigma_h: float = 0.0, calib: Calibration = KNOWN) -> Fit:
     """3-DOF fit from `start` = (x, y, yaw). The covariance adds the roof-height uncertainty sigma_h
-    carried through dtheta/dh: the plane is fixed at h, so an error in h moves the answer."""
+    carried through dtheta/dh: the plane is fixed at h, so an error in h moves the answer; and likewise
+    the cameras' calibration uncertainty when given."""
 
     def fun(p):
         ev = evaluate(c, planar_theta(p[0], p[1], p[2], h))
@@ -59,10 +75,18 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
     dtheta_dh = -N_inv @ (J.T @ J_h)
     cov = sigma ** 2 * N_inv + sigma_h ** 2 * np.outer(dtheta_dh, dtheta_dh)
     height_rms = sigma_h * rms(J_h + J @ dtheta_dh)
+    calib_rms = 0.0
+    if not calib.known:
+        J_c = calib_columns(c, theta, calib)
+        estimator = N_inv @ J.T
+        G = estimator @ J_c
+        cov = cov + (G * np.tile(calib.sigmas ** 2, J_c.shape[1] // len(calib.columns))) @ G.T
+        calib_rms = calib_residual_rms(J, estimator, J_c, calib)
     note = None
     if not ev.in_front:
         note = "pose puts the tag behind the camera"
     elif not res.converged:
         note = "H.Opt. did not converge"
     return Fit("hopt", theta, cov, rms(ev.r_px), sigma, c, converged=res.converged and ev.in_front,
-               dof=2 * c.n - 3, fit_rms_px=rms(ev.r_px), height_rms_px=height_rms, note=note)
+               dof=2 * c.n - 3, fit_rms_px=rms(ev.r_px), height_rms_px=height_rms, calib_rms_px=calib_rms,
+               note=note)

@@ -194,3 +194,90 @@ def evaluate(c: Corners, theta) -> Evaluation:
         J = c.cam_K @ D @ c.cam_R @ dP
     return Evaluation((uv - c.pixels).ravel(), J.reshape(-1, 6), P_roof[:, 2], dP_roof[:, 2, :], Z)
 
+
+
+# ---- camera calibration ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Calibration:
+    """How well every camera's extrinsics are known: rotation error sigma (rad, about each camera
+    axis: R -> exp(w) R) and camera-centre error sigma (m, per world axis), independent per camera,
+    as sim.image_model.perturb_camera draws them. Zero: known exactly."""
+
+    rot_sigma: float = 0.0
+    trans_sigma: float = 0.0
+
+    def __post_init__(self):
+        if not (self.rot_sigma >= 0.0 and self.trans_sigma >= 0.0):
+            raise ValueError("calibration sigmas must be >= 0")
+
+    @property
+    def known(self) -> bool:
+        return not (self.rot_sigma > 0.0 or self.trans_sigma > 0.0)
+
+    @property
+    def columns(self) -> list[int]:
+        """Which of a camera's 6 corrections (rotation 0..2, centre 3..5) are uncertain."""
+        return ([0, 1, 2] if self.rot_sigma > 0 else []) + ([3, 4, 5] if self.trans_sigma > 0 else [])
+
+    @property
+    def sigmas(self) -> np.ndarray:
+        """Prior sigmas of the uncertain corrections of one camera, in `columns` order."""
+        return np.array([self.rot_sigma] * 3 * (self.rot_sigma > 0) + [self.trans_sigma] * 3 * (self.trans_sigma > 0))
+
+
+KNOWN = Calibration()
+
+
+def camera_index(c: Corners) -> np.ndarray:
+    """(N,) index into c.camera_ids of each observed corner's camera."""
+    ids = c.camera_ids
+    return np.array([ids.index(c.units[u].camera.id) for u in c.unit_of], dtype=int)
+
+
+def calib_jacobian(c: Corners, theta) -> np.ndarray:
+    """d(pixels)/d(extrinsic correction) (2N, 6) of each row's own camera at pose theta: rotation vector
+    about the camera axes (R -> exp(w) R) and camera-centre shift (world)."""
+    P_roof, _ = roof_world(theta, c.roof_points)
+    P = P_roof[c.corner_of]
+    Xc = np.einsum("nij,nj->ni", c.cam_R, P) + c.cam_t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iz = 1.0 / Xc[:, 2]
+    xn = Xc[:, :2] * iz[:, None]
+    D = np.zeros((len(Xc), 2, 3))
+    D[:, 0, 0] = iz
+    D[:, 1, 1] = iz
+    D[:, :, 2] = -xn * iz[:, None]
+    KD = c.cam_K @ D  # (N,2,3) d(pixel)/d(X_cam)
+    skew = np.zeros((len(Xc), 3, 3))  # d(exp(w) X)/dw = -[X]x
+    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    skew[:, 0, 1], skew[:, 0, 2] = z, -y
+    skew[:, 1, 0], skew[:, 1, 2] = -z, x
+    skew[:, 2, 0], skew[:, 2, 1] = y, -x
+    J_rot = KD @ skew
+    J_pos = -KD @ c.cam_R  # X_cam = R (X - centre)
+    return np.concatenate([J_rot, J_pos], axis=2).reshape(-1, 6)
+
+
+def calib_columns(c: Corners, theta, calib: Calibration) -> np.ndarray:
+    """d(pixels)/d(every camera's uncertain corrections) (2N, K·len(calib.columns)), camera by camera in
+    c.camera_ids order: each row depends on its own camera's block only."""
+    cols = calib.columns
+    J6 = calib_jacobian(c, theta)[:, cols]
+    cam = np.repeat(camera_index(c), 2)
+    k = len(cols)
+    out = np.zeros((2 * c.n, k * len(c.camera_ids)))
+    for i in range(len(c.camera_ids)):
+        rows = cam == i
+        out[rows, i * k:(i + 1) * k] = J6[rows]
+    return out
+
+
+def calib_residual_rms(J_px: np.ndarray, estimator: np.ndarray, J_c: np.ndarray, calib: Calibration) -> float:
+    """Per-corner RMS pixel residual that the cameras' calibration errors (one sigma) leave after a fit
+    whose parameter change per pixel change is `estimator` (P, 2N): (I − J_px·estimator)·J_c·delta."""
+    if calib.known or J_c.shape[1] == 0:
+        return 0.0
+    R = J_c - J_px @ (estimator @ J_c)
+    s2 = np.tile(calib.sigmas ** 2, J_c.shape[1] // len(calib.columns))
+    n = len(J_px) // 2
+    return float(np.sqrt(np.sum(R * R * s2) / n)) if n else 0.0

@@ -17,11 +17,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from toptag.solvers.common import Fit, estimate_sigma, rms, safe_inverse
+from toptag.solvers.common import SIGMA_FLOOR_PX, Fit, estimate_sigma, rms, safe_inverse
 from toptag.solvers.lm import levenberg_marquardt
-from toptag.solvers.model import Corners, Evaluation, evaluate
+from toptag.solvers.model import (
+    KNOWN,
+    Calibration,
+    Corners,
+    Evaluation,
+    calib_columns,
+    calib_residual_rms,
+    evaluate,
+)
 
 WEIGHTINGS = ("paper", "principled")
+SIGMA_ROUNDS = 3  # principled, sigma unknown: solve, re-estimate sigma, solve again until it settles
 HEIGHT_MODELS = ("common", "independent")
 
 
@@ -57,9 +66,11 @@ def _minimise(c: Corners, h: float, theta0, w: _Weights):
     return levenberg_marquardt(fun, theta0)
 
 
-def _statistics(ev: Evaluation, w: _Weights, sigma_px: float | None, sigma_h: float, height_model: str):
+def _statistics(ev: Evaluation, w: _Weights, sigma_px: float | None, sigma_h: float, height_model: str,
+                J_c: np.ndarray | None = None, calib: Calibration = KNOWN):
     """(covariance 6x6, sigma_px used, effective pixel degrees of freedom, per-corner pixel RMS that a
-    one-sigma common roof offset leaves in the residual)."""
+    one-sigma common roof offset leaves in the residual, and that one-sigma calibration errors leave).
+    J_c: d(pixels)/d(the cameras' uncertain extrinsic corrections) when calib is given."""
     JpJp = ev.J_px.T @ ev.J_px
     Hn = w.px * JpJp + w.h * (ev.J_z.T @ ev.J_z)
     H_inv = safe_inverse(Hn)
@@ -74,30 +85,43 @@ def _statistics(ev: Evaluation, w: _Weights, sigma_px: float | None, sigma_h: fl
     B = (w.px ** 2) * sigma ** 2 * JpJp + (w.h ** 2) * sigma_h ** 2 * height_term
     # Residual left by a roof offset delta: the height prior pulls the pose by -H⁻¹ J_zᵀ w_h·delta·1.
     height_rms = sigma_h * rms(ev.J_px @ (H_inv @ (w.h * ev.J_z.sum(axis=0))))
-    return H_inv @ B @ H_inv, sigma, dof, height_rms
+    cov = H_inv @ B @ H_inv
+    calib_rms = 0.0
+    if J_c is not None and not calib.known:
+        estimator = w.px * (H_inv @ ev.J_px.T)
+        G = estimator @ J_c
+        cov = cov + (G * np.tile(calib.sigmas ** 2, J_c.shape[1] // len(calib.columns))) @ G.T
+        calib_rms = calib_residual_rms(ev.J_px, estimator, J_c, calib)
+    return cov, sigma, dof, height_rms, calib_rms
 
 
 def fit_sopt(c: Corners, h: float, theta0, *, weighting: str = "paper", sigma_px: float | None = None,
              sigma_h: float, mu: float = 1.0, sigma_weight: float | None = None,
-             height_model: str = "common") -> Fit:
-    """6-DOF fit from theta0. sigma_weight is the pixel sigma used to weight the principled problem
-    when sigma_px is unknown (then re-estimated from this fit's own residuals and solved once more)."""
+             height_model: str = "common", calib: Calibration = KNOWN) -> Fit:
+    """6-DOF fit from theta0. sigma_weight is the pixel sigma the principled problem is first weighted
+    with when sigma_px is unknown (default SIGMA_FLOOR_PX; then re-estimated from the fit's own residuals
+    and solved again, up to SIGMA_ROUNDS times, until it changes by less than 10 %)."""
     if weighting not in WEIGHTINGS:
         raise ValueError(f"weighting must be one of {WEIGHTINGS}, not {weighting!r}")
     if height_model not in HEIGHT_MODELS:
         raise ValueError(f"height_model must be one of {HEIGHT_MODELS}, not {height_model!r}")
     if weighting == "principled" and not sigma_h > 0:
         raise ValueError("principled weighting needs sigma_h > 0")
-    sigma_w = sigma_px if sigma_px is not None else (sigma_weight or 0.5)
-    w = _weights(weighting, sigma_w, sigma_h, mu, height_model, len(c.roof_points))
-    res = _minimise(c, h, np.asarray(theta0, dtype=float), w)
-    ev = evaluate(c, res.theta)
-    cov6, sigma, dof, height_rms = _statistics(ev, w, sigma_px, sigma_h, height_model)
-    if weighting == "principled" and sigma_px is None and abs(sigma / sigma_w - 1.0) > 0.1:
-        w = _weights(weighting, sigma, sigma_h, mu, height_model, len(c.roof_points))
-        res = _minimise(c, h, res.theta, w)
-        ev = evaluate(c, res.theta)
-        cov6, sigma, dof, height_rms = _statistics(ev, w, sigma_px, sigma_h, height_model)
+    # Unknown sigma: start from the detector noise floor, not from H.Opt.'s residual (which, with the roof
+    # held at h, shows the roof bounce: 8 px at 5 m and 3200x2400 would weigh the height prior 1000x too
+    # much), and re-estimate until it settles.
+    sigma_w = sigma_px if sigma_px is not None else (sigma_weight or SIGMA_FLOOR_PX)
+    theta = np.asarray(theta0, dtype=float)
+    for _ in range(SIGMA_ROUNDS):
+        w = _weights(weighting, sigma_w, sigma_h, mu, height_model, len(c.roof_points))
+        res = _minimise(c, h, theta, w)
+        theta = res.theta
+        ev = evaluate(c, theta)
+        J_c = None if calib.known else calib_columns(c, theta, calib)
+        cov6, sigma, dof, height_rms, calib_rms = _statistics(ev, w, sigma_px, sigma_h, height_model, J_c, calib)
+        if weighting != "principled" or sigma_px is not None or abs(sigma / sigma_w - 1.0) <= 0.1:
+            break
+        sigma_w = sigma
     note = None
     if not ev.in_front:
         note = "pose puts the tag behind the camera"
@@ -105,4 +129,4 @@ def fit_sopt(c: Corners, h: float, theta0, *, weighting: str = "paper", sigma_px
         note = "S.Opt. did not converge"
     return Fit("sopt", res.theta, cov6[:3, :3], rms(ev.r_px), sigma, c,
                converged=res.converged and ev.in_front, dof=dof, fit_rms_px=rms(ev.r_px),
-               height_rms_px=height_rms, note=note)
+               height_rms_px=height_rms, calib_rms_px=calib_rms, note=note)

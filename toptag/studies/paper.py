@@ -22,8 +22,8 @@ then solves the same observations:
     hopt             H.Opt. (x, y, yaw; roof at 3 m)                          paper
     sopt             S.Opt. (6-DOF, mu = 1)                                   paper
     sopt_principled  S.Opt., residuals over their sigmas, common roof offset  toptag.solvers
-    sopt_level       x, y, yaw, z of a level roof, height prior, edge-noise    this study
-                     weighting, garbled tags weighed down, calibration-aware   (paper_models)
+    sopt_level       x, y, yaw, z of a level roof, height prior, edge-noise    toptag.solvers "level"
+                     weighting, garbled tags weighed down, calibration-aware   (built by this study)
     sopt_2cam        sopt_principled on two RSUs' images of the same scene: the south-west one and
                      the nearer of its neighbours (south-east, north-west) that sees both plates
     sopt_level_2cam  sopt_level on the same two RSUs
@@ -70,13 +70,24 @@ import numpy as np
 
 from sim.image_model import ImageModel, perturb_camera
 from sim.render import render
-from sim.sampling import SECTOR_HALF_ANGLE, horizontal_distance, plates_in_view, sector_pose
+from sim.sampling import (
+    SECTOR_HALF_ANGLE,
+    horizontal_distance,
+    plates_in_view,
+    sector_pose,
+)
 from sim.scene import HIGH_RES, LOW_RES, bundled_vehicle, rsu_camera
 from toptag.camera import Camera
 from toptag.detection import TagObservation
 from toptag.geometry import vehicle_to_world, wrap_angle
 from toptag.solvers import Limits, position_crlb, solve
-from toptag.studies.paper_models import EdgeNoise, measure_noise, noise_at, outlier_flags, pose_bound, solve_level
+from toptag.studies.paper_models import (
+    EdgeNoise,
+    measure_noise,
+    noise_at,
+    outlier_flags,
+    pose_bound,
+)
 from toptag.vehicle import Vehicle
 
 DISTANCES = tuple(range(5, 21))  # whole-metre bins, metres from the RSU (horizontal)
@@ -111,7 +122,7 @@ CASES: dict[str, Case] = {
 
 @dataclasses.dataclass(frozen=True)
 class SolverSpec:
-    method: str  # bas | hopt | sopt (toptag.solvers.solve) or "level" (paper_models.solve_level)
+    method: str  # bas | hopt | sopt | level (toptag.solvers.solve)
     weighting: str
     two_cameras: bool
     label: str
@@ -189,21 +200,17 @@ def _solve_all(vehicle: Vehicle, obs1: list, obs2: list, cams: dict[str, Camera]
         return [dataclasses.replace(o, camera=cams[o.camera.id]) for o in obs]
 
     limits = Limits(max_position_sigma_m=math.inf)
+    told = {"calib_rot_sigma": calib[0], "calib_trans_sigma": calib[1]} if calib else {}
     out = {}
-    hopt = None  # H.Opt. on the first RSU: the start of the level solver
     for key, spec in SOLVERS.items():
         obs = recam(obs1 + obs2 if spec.two_cameras else obs1)
         if not obs:
             out[key] = None
             continue
-        if spec.method == "level":
-            s = solve_level(vehicle, obs, sigma_h, calib, limits, start=None if spec.two_cameras and obs2 else hopt)
-        elif spec.weighting == "principled":
-            s = solve(vehicle, obs, spec.method, weighting="principled", sigma_h=sigma_h, limits=limits)
+        if spec.weighting == "principled":  # told the roof-height and calibration sigmas
+            s = solve(vehicle, obs, spec.method, weighting="principled", sigma_h=sigma_h, limits=limits, **told)
         else:
             s = solve(vehicle, obs, spec.method, weighting=spec.weighting, limits=limits)
-            if key == "hopt":
-                hopt = s
         if not s.ok:
             out[key] = None
             continue

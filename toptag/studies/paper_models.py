@@ -1,5 +1,5 @@
-"""The paper study's models: the measured corner-noise model, the Cramér–Rao bound it implies, and the
-study's own solver (level roof, roof height with its prior, optionally calibration-aware).
+"""The paper study's models: the measured corner-noise model and the Cramér–Rao bound it implies. (The
+level-roof solver the study built is toptag.solvers' method "level", toptag/solvers/level.py.)
 
 Corner noise. An AprilTag corner is the intersection of two fitted edge lines (AprilTag 3 refines each
 quad edge by sampling the gradient along it, then intersects neighbouring lines), so corner errors are
@@ -18,12 +18,9 @@ or z known (no bounce). With calibration error, every camera's extrinsics (rotat
 axes, centre per world axis, as sim.image_model.perturb_camera draws them) join as unknowns with their
 prior: the bound then says what no estimator can beat without better calibration.
 
-Solver `solve_level`: the level-roof model the bound describes, as a weighted least-squares problem:
-corner residuals mapped to edge offsets and turns (turns over TURN_RATIO) over their sigma (estimated
-from the fit), (z − h)/sigma_h, and, when the calibration is uncertain, the cameras' extrinsic
-corrections over their prior sigmas (a per-RSU error shared by all of its corners: the estimator weighs
-the RSUs accordingly instead of trusting each one's rays exactly). Garbled tags are weighed down by
-their own misfit (see solve_level).
+The level solver (toptag.solvers.solve(..., "level")) is the estimator this bound describes: corner
+residuals mapped to edge offsets and turns (turns over TURN_RATIO), (z − h)/sigma_h, and with calibration
+error every camera's extrinsic correction with its prior.
 """
 from __future__ import annotations
 
@@ -34,24 +31,24 @@ import numpy as np
 
 from toptag.camera import Camera
 from toptag.detection import TagObservation
-from toptag.geometry import rodrigues, wrap_angle
-from toptag.solvers import Limits, PoseSolution, solve
-from toptag.solvers.common import estimate_sigma
-from toptag.solvers.lm import levenberg_marquardt
-from toptag.solvers.model import IX, IY, IYAW, IZ, Corners, build_corners, evaluate, planar_theta, roof_world
+from toptag.solvers.level import TURN_RATIO
+from toptag.solvers.model import (
+    IX,
+    IY,
+    IYAW,
+    IZ,
+    build_corners,
+    calib_jacobian,
+    evaluate,
+    planar_theta,
+)
 from toptag.vehicle import Vehicle
 
-TURN_RATIO = math.sqrt(3.0)  # sigma(turn) / sigma(offset) of a line fitted to evenly spread samples
+__all__ = ["TURN_RATIO", "EdgeNoise", "edge_components", "outlier_flags", "measure_noise", "noise_at",
+           "pose_bound"]
+
 OUTLIER_FACTOR = 5.0  # a tag whose corner RMS error exceeds this many times the case's median is garbled
 MIN_TAGS = 12  # fewer good tags measured in a bin: the bins around it lend theirs
-# The solvers' own floor (0.1 px, toptag.solvers.common) is above what this detector achieves on these
-# images (edge offsets of 0.02-0.03 px): with it the height prior would be trusted too much.
-SIGMA_FLOOR_PX = 0.005
-NO_PRIOR_M = 100.0  # a roof-height "prior" that constrains nothing
-# A tag fitted alone with a misfit up to this many times the best tag's is as good as it (two good tags'
-# own misfits, 4 degrees of freedom each, differ by 3x one time in ten); beyond, its weight falls as the
-# square of the excess: a garbled tag (measured: 15-2000x) counts for nothing.
-MISFIT_FACTOR = 5.0
 
 
 @dataclass(frozen=True)
@@ -131,29 +128,6 @@ def noise_at(noise: dict[int, EdgeNoise], distance: float) -> EdgeNoise:
 
 
 # ---- the bound ----------------------------------------------------------------------------------------
-def _calib_jacobian(c: Corners, theta) -> np.ndarray:
-    """d(pixels)/d(extrinsic correction) (2N, 6) of each row's own camera: rotation vector about the
-    camera axes (R -> exp(w) R) and camera-centre shift (world), at the rows' cameras."""
-    P_roof, _ = roof_world(theta, c.roof_points)
-    P = P_roof[c.corner_of]
-    Xc = np.einsum("nij,nj->ni", c.cam_R, P) + c.cam_t
-    iz = 1.0 / Xc[:, 2]
-    xn = Xc[:, :2] * iz[:, None]
-    D = np.zeros((len(Xc), 2, 3))
-    D[:, 0, 0] = iz
-    D[:, 1, 1] = iz
-    D[:, :, 2] = -xn * iz[:, None]
-    KD = c.cam_K @ D  # (N,2,3) d(pixel)/d(X_cam)
-    skew = np.zeros((len(Xc), 3, 3))  # d(exp(w) X)/dw = -[X]x
-    x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-    skew[:, 0, 1], skew[:, 0, 2] = z, -y
-    skew[:, 1, 0], skew[:, 1, 2] = -z, x
-    skew[:, 2, 0], skew[:, 2, 1] = y, -x
-    J_rot = KD @ skew
-    J_pos = -KD @ c.cam_R  # X_cam = R (X - c)
-    return np.concatenate([J_rot, J_pos], axis=2).reshape(-1, 6)
-
-
 def _weighted_rows(vehicle: Vehicle, cam: Camera, ids, noise, theta, params, calib: bool):
     """Whitened Jacobian rows (pose columns, calibration columns or None) of one camera's tags under
     `noise` (EdgeNoise: edge model; float: i.i.d. sigma per coordinate)."""
@@ -161,7 +135,7 @@ def _weighted_rows(vehicle: Vehicle, cam: Camera, ids, noise, theta, params, cal
     c = build_corners(vehicle, obs)
     ev = evaluate(c, theta)
     Jp = ev.J_px[:, params]
-    Jc = _calib_jacobian(c, theta) if calib else None
+    Jc = calib_jacobian(c, theta) if calib else None
     if not isinstance(noise, EdgeNoise):
         s = float(noise)
         return Jp / s, (Jc / s if Jc is not None else None)
@@ -211,151 +185,3 @@ def pose_bound(vehicle: Vehicle, views, pose, sigma_h: float, calib: tuple[float
     except np.linalg.LinAlgError:
         return math.inf, math.inf
     return float(math.sqrt(cov[0, 0] + cov[1, 1])), float(math.sqrt(cov[2, 2]))
-
-
-# ---- the level-roof solver ----------------------------------------------------------------------------
-@dataclass
-class LevelSolution:
-    ok: bool
-    x: float = math.nan
-    y: float = math.nan
-    yaw: float = math.nan
-    z: float = math.nan
-    sigma_px: float = math.nan
-    cameras: tuple[str, ...] = ()
-    tags: tuple[int, ...] = ()
-    error: str | None = None
-
-
-def edge_whitener(pixels: np.ndarray, turn_ratio: float) -> np.ndarray:
-    """(2N, 2N) block-diagonal map from corner residuals (tags of 4 corners, rows in order) to edge
-    offsets and turns, the turns divided by turn_ratio: residuals of equal variance under the
-    edge-line noise model. Edge normals from the observed quads."""
-    n = len(pixels)
-    T = np.zeros((2 * n, 2 * n))
-    for k in range(0, n, 4):
-        q = pixels[k:k + 4]
-        for a in range(4):
-            b = (a + 1) % 4
-            u = q[b] - q[a]
-            u = u / np.linalg.norm(u)
-            nrm = np.array([-u[1], u[0]]) / 2
-            ro, rw = 2 * (k + a), 2 * (k + a) + 1
-            ia, ib = 2 * (k + a), 2 * (k + b)
-            T[ro, ia:ia + 2] = nrm
-            T[ro, ib:ib + 2] = nrm
-            T[rw, ia:ia + 2] = -nrm / turn_ratio
-            T[rw, ib:ib + 2] = nrm / turn_ratio
-    return T
-
-
-def _fit_level(c: Corners, h: float, sigma_h: float, calib, turn_ratio, start_xyyaw, sigma0: float,
-               unit_weights=None, rounds: int = 3):
-    """The weighted level-roof least squares on corners c from (x, y, yaw) with z = h and no
-    calibration correction; unit_weights (per tag-in-camera, <= 1) scale each one's whitened residuals.
-    Returns (LmResult, sigma (offset px), whitened weighted pixel residuals (px))."""
-    cam_ids = c.camera_ids
-    row_cam = np.array([cam_ids.index(c.units[u].camera.id) for u in c.unit_of])
-    n_c = 6 * len(cam_ids) if calib is not None else 0
-    prior = (np.array(([1 / calib[0]] * 3 + [1 / calib[1]] * 3) * len(cam_ids)) if calib is not None
-             else np.zeros(0))
-    cols = [IX, IY, IYAW, IZ]
-    W = edge_whitener(c.pixels, turn_ratio) if turn_ratio else np.eye(2 * c.n)
-    if unit_weights is not None:
-        W = np.repeat(np.asarray(unit_weights, dtype=float)[c.unit_of], 2)[:, None] * W
-    cam_rows = [row_cam == k for k in range(len(cam_ids))]
-    px_rows = [np.flatnonzero(np.repeat(rows, 2)) for rows in cam_rows]
-
-    def corrected(p) -> Corners:
-        """Each camera's extrinsics corrected by p's share: R' = exp(w) R, centre' = centre + dc."""
-        if not n_c:
-            return c
-        R, t = c.cam_R.copy(), c.cam_t.copy()
-        for k, rows in enumerate(cam_rows):
-            w, dc = p[4 + 6 * k:7 + 6 * k], p[7 + 6 * k:10 + 6 * k]
-            R0, t0 = c.cam_R[rows][0], c.cam_t[rows][0]
-            Rk = rodrigues(w) @ R0
-            R[rows] = Rk
-            t[rows] = -Rk @ (-R0.T @ t0 + dc)
-        return Corners(c.units, c.unit_of, c.pixels, c.corner_of, c.roof_points, R, t, c.cam_K, c.cam_c)
-
-    def make(sigma):
-        def fun(p):
-            theta = planar_theta(p[0], p[1], p[2], p[3])
-            cc = corrected(p)
-            ev = evaluate(cc, theta)
-            m = len(ev.r_px)
-            J = np.zeros((m + 1 + n_c, 4 + n_c))
-            J[:m, :4] = W @ ev.J_px[:, cols] / sigma
-            J[m, 3] = 1.0 / sigma_h
-            r = [W @ ev.r_px / sigma, [(p[3] - h) / sigma_h]]
-            if n_c:
-                Jc = np.zeros((m, n_c))
-                Jcam = _calib_jacobian(cc, theta)
-                for k, rows in enumerate(px_rows):
-                    Jc[rows, 6 * k:6 * k + 6] = Jcam[rows]
-                J[:m, 4:] = W @ Jc / sigma
-                J[m + 1:, 4:] = np.diag(prior)
-                r.append(p[4:] * prior)
-            r = np.concatenate(r)
-            if not ev.in_front:
-                r = np.full_like(r, np.inf)
-            return r, J
-        return fun
-
-    p = np.concatenate([start_xyyaw, [h], np.zeros(n_c)])
-    sigma = sigma0
-    res = None
-    for _ in range(rounds):  # sigma from the fit's own residuals, then solved again with it
-        res = levenberg_marquardt(make(sigma), p if res is None else res.theta)
-        r_px = res.r[:2 * c.n] * sigma
-        new = estimate_sigma(float(r_px @ r_px), 2 * c.n - 4, floor=SIGMA_FLOOR_PX)
-        if abs(new / sigma - 1.0) <= 0.1:
-            break
-        sigma = new
-    return res, sigma, res.r[:2 * c.n] * sigma
-
-
-def solve_level(vehicle: Vehicle, observations: list[TagObservation], sigma_h: float,
-                calib: tuple[float, float] | None = None, limits: Limits | None = None,
-                turn_ratio: float | None = TURN_RATIO, start: PoseSolution | None = None) -> LevelSolution:
-    """(x, y, yaw, z) of a level roof from any tags in any cameras: pixel residuals over their sigma,
-    (z − h)/sigma_h, and with calib = (rotation sigma rad, centre sigma m) every camera's extrinsic
-    correction as an unknown with that prior. turn_ratio: weigh the corner residuals by the edge-line
-    noise model (each edge's offset and turn, the turn's sigma turn_ratio times the offset's, sigma
-    estimated from the fit); None: independent corner coordinates of equal sigma.
-
-    Tags the paper's H.Opt. outlier test drops are dropped. The detector now and then returns one or
-    two corners of a tag pixels off (about one tag in a hundred here), which that pooled-sigma test
-    lets through; so each tag-in-camera is first fitted alone, its roof height free (its own RMS
-    residual r_k says how well its corners fit a tag's shape), and its residuals are weighted by
-    min(1, (MISFIT_FACTOR·r_min / r_k)²): tags of equal quality weigh alike, a garbled one counts for
-    nothing. H.Opt. gives the start
-    (pass `start`, H.Opt.'s solution of the same observations, if it is at hand)."""
-    if start is None:
-        start = solve(vehicle, observations, "hopt", sigma_h=sigma_h, limits=limits)
-    if not start.ok:
-        return LevelSolution(False, error=start.error)
-    dropped = {(d["tag"], d["camera"]) for d in start.dropped_tags}
-    obs = [o for o in observations if (int(o.tag_id), o.camera.id) not in dropped]
-    h = float(vehicle.height)
-    xyyaw = np.array([start.x, start.y, start.yaw])
-    sigma0 = start.sigma_px if math.isfinite(start.sigma_px) else 0.5
-    c = build_corners(vehicle, obs)
-    weights = None
-    if len(c.units) >= 2:
-        # Each alone, its roof height free (no prior): the residual is the misfit of its shape only.
-        own = np.array([math.sqrt(float(np.mean(_fit_level(c.subset([k]), h, NO_PRIOR_M, None, turn_ratio, xyyaw,
-                                                            sigma0, rounds=1)[2] ** 2))) for k in range(len(c.units))])
-        ref = max(float(own.min()), SIGMA_FLOOR_PX)
-        excess = np.maximum(own / (MISFIT_FACTOR * ref), 1.0)
-        weights = 1.0 / excess ** 2
-        sigma0 = ref
-    res, sigma, _ = _fit_level(c, h, sigma_h, calib, turn_ratio, xyyaw, sigma0, weights)
-    if res is None or not res.converged or not np.all(np.isfinite(res.theta)):
-        return LevelSolution(False, error="level-roof fit did not converge")
-    p = res.theta
-    return LevelSolution(True, float(p[0]), float(p[1]), wrap_angle(p[2]), float(p[3]), sigma,
-                         tuple(c.camera_ids), tags=tuple(sorted({u.tag_id for u in c.units})))
-
-

@@ -1,0 +1,442 @@
+"""Level roof: (x, y, yaw, z) of a roof held level, its height z with the prior z ~ N(h, sigma_h²), from
+any tags in any cameras, the corner residuals weighed by the AprilTag edge-line noise model.
+
+Why level. A bus roof bounces as a whole; it does not tilt by more than a fraction of a degree. The
+paper's S.Opt. leaves pitch and roll free, and one camera can hardly tell a tilt from a shift along its
+line of sight: measured (docs/paper-study.md), holding the roof level gains 2–5× at 10–20 m and reaches
+the Cramér–Rao bound of the level roof.
+
+Corner noise. An AprilTag corner is the intersection of two fitted edge lines, so corner errors are not
+independent per coordinate: each edge line has an offset error (moved along its normal) and a turn
+(its endpoints moved oppositely along the normal), independent between edges; a line fitted to evenly
+spread samples has sigma(turn) = sqrt(3)·sigma(offset) (TURN_RATIO; measured 1.7–2.0). The residuals
+are mapped to those edge offsets and turns (`edge_whitener`), the turns divided by the turn ratio,
+which makes them of one sigma, the offset sigma. For a rectangle, a corner coordinate then has the
+variance (1 + turn_ratio²)·sigma_offset²: sigma_px (per corner coordinate, as the other solvers use it)
+= sqrt(1 + turn_ratio²)·sigma_offset. turn_ratio=None: independent corner coordinates of sigma_px.
+
+Garbled tags. The detector now and then returns one or two corners of a tag pixels off (about one tag
+in a hundred in the study). Those the outlier test (robust.screen_outliers) does not drop are weighed
+down by their own misfit: each tag-in-camera is fitted alone (its residual says how well its corners
+fit a tag's shape), and its residuals are weighted by min(1, (MISFIT_FACTOR·r_min / r_k)^4): tags of
+equal quality weigh alike (two good tags' misfits, 4–5 degrees of freedom each, differ by 5x about one
+time in 150, by 9x one time in 2000), and a tag whose misfit is 9x the best one's or more (a garbled
+tag: measured 8–2000x) is left out and reported in dropped_tags. A camera whose rotation is far off its
+calibration shows the same way (its tags look tilted), and so loses its tags rather than bending the
+pose; within its calibration uncertainty (when given) it does not: each tag's own fit then corrects its
+camera's rotation within that prior.
+
+Calibration. With the cameras' extrinsic uncertainty given (model.Calibration), every camera's
+extrinsic correction (rotation about its axes, centre shift) is an unknown with that prior: a per-RSU
+error is shared by all of its corners, and the estimator weighs the RSUs accordingly instead of trusting
+each one's rays exactly. The covariance then carries the calibration uncertainty.
+
+Covariance: the sandwich H⁻¹ B H⁻¹ of the weighted problem at the optimum (H⁻¹ when no tag is weighed
+down), sigma given or estimated from the weighted residuals.
+"""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+from scipy.linalg import block_diag
+
+from toptag.geometry import rodrigues
+from toptag.solvers.common import Fit, estimate_sigma, rms, safe_inverse
+from toptag.solvers.hopt import initial_pose
+from toptag.solvers.lm import levenberg_marquardt
+from toptag.solvers.model import (
+    IX,
+    IY,
+    IYAW,
+    IZ,
+    KNOWN,
+    Calibration,
+    Corners,
+    calib_columns,
+    camera_index,
+    evaluate,
+    planar_theta,
+)
+
+TURN_RATIO = math.sqrt(3.0)  # sigma(turn) / sigma(offset) of a line fitted to evenly spread samples
+# Typical AprilTag 3 corner noise per coordinate on the study's images (0.04–0.09 px at 960×720,
+# 0.03–0.06 px at 3200×2400; edge offsets 0.02–0.03 px): the starting weight when sigma is unknown,
+# and pooled in when a fit leaves too few degrees of freedom to estimate it.
+DETECTOR_SIGMA_PX = 0.05
+# Per corner coordinate. The other solvers' floor (0.1 px, common.SIGMA_FLOOR_PX) is above what the
+# detector achieves; with it the height prior would be trusted too much.
+SIGMA_FLOOR_PX = 0.01
+MISFIT_FACTOR = 5.0  # a tag's misfit up to this many times the best tag's is as good as it (see below)
+MISFIT_POWER = 4.0  # beyond, its residuals count (MISFIT_FACTOR·r_min / r_k)^MISFIT_POWER as much
+MISFIT_DROP_WEIGHT = 0.1  # below (a misfit 9x the best tag's), the tag is left out and reported
+MAX_ROUNDS = 3  # sigma estimated from the fit, the fit redone with it, until it changes by < 10 %
+POSE = [IX, IY, IYAW, IZ]
+
+
+@functools.lru_cache(maxsize=64)
+def _chi2_quantile(alpha: float, k: int) -> float:
+    return float(stats.chi2.ppf(1.0 - alpha, k))
+
+
+def noise_scale(turn_ratio: float | None) -> float:
+    """sigma_px (per corner coordinate) / sigma of the whitened residuals."""
+    return math.sqrt(1.0 + turn_ratio ** 2) if turn_ratio else 1.0
+
+
+def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
+    """(T, 8, 8) per tag (4 corners each, rows in order): its corner residuals (x0, y0, x1, ...) to its
+    edges' offsets and turns (turns over turn_ratio), edge normals from the observed quad. Residuals of
+    equal variance under the edge-line noise model; identity for turn_ratio None."""
+    q = np.asarray(pixels, dtype=float).reshape(-1, 4, 2)
+    n_tags = len(q)
+    if not turn_ratio:
+        return np.broadcast_to(np.eye(8), (n_tags, 8, 8)).copy()
+    u = np.roll(q, -1, axis=1) - q  # edge a: corner a -> a+1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = u / np.linalg.norm(u, axis=2, keepdims=True)
+    nrm = np.stack([-u[..., 1], u[..., 0]], axis=2) / 2.0  # (T,4,2)
+    B = np.zeros((n_tags, 8, 8))
+    for a in range(4):
+        b = (a + 1) % 4
+        B[:, 2 * a, 2 * a:2 * a + 2] = nrm[:, a]
+        B[:, 2 * a, 2 * b:2 * b + 2] = nrm[:, a]
+        B[:, 2 * a + 1, 2 * a:2 * a + 2] = -nrm[:, a] / turn_ratio
+        B[:, 2 * a + 1, 2 * b:2 * b + 2] = nrm[:, a] / turn_ratio
+    return B
+
+
+def edge_whitener(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
+    """(2N, 2N) block-diagonal map of edge_blocks."""
+    return block_diag(*edge_blocks(pixels, turn_ratio))
+
+
+# ---- the weighted least-squares problem -------------------------------------------------------------
+class LevelProblem:
+    """Unknowns p = (x, y, yaw[, z][, every camera's uncertain extrinsic corrections]); z is held at h
+    when sigma_h is 0. Residuals: whitened corner residuals (times the unit weights) over sigma, then
+    (z − h)/sigma_h, then the corrections over their prior sigmas."""
+
+    def __init__(self, c: Corners, h: float, sigma_h: float, calib: Calibration = KNOWN,
+                 turn_ratio: float | None = TURN_RATIO, unit_weights=None, whitener: np.ndarray | None = None):
+        self.c, self.h, self.sigma_h, self.calib = c, float(h), float(sigma_h), calib
+        self.T = edge_whitener(c.pixels, turn_ratio) if whitener is None else whitener
+        self.row_w = (np.ones(2 * c.n) if unit_weights is None
+                      else np.repeat(np.asarray(unit_weights, dtype=float)[c.unit_of], 2))
+        self.zfree = self.sigma_h > 0
+        self.cols = POSE if self.zfree else POSE[:3]
+        self.n_pose = len(self.cols)
+        self.cams = c.camera_ids
+        self.n_c = 0 if calib.known else len(calib.columns) * len(self.cams)
+        self.n_p = self.n_pose + self.n_c
+        prior = np.zeros(self.n_p)  # square roots of the prior precisions
+        if self.zfree:
+            prior[3] = 1.0 / self.sigma_h
+        if self.n_c:
+            prior[self.n_pose:] = np.tile(1.0 / calib.sigmas, len(self.cams))
+        self.prior = prior
+        self.prior_rows = np.flatnonzero(prior > 0)
+        if self.n_c:
+            cam = camera_index(c)
+            self._cam_rows = [cam == k for k in range(len(self.cams))]
+            self._R0 = [c.cam_R[rows][0] for rows in self._cam_rows]
+            self._centre0 = [-R.T @ c.cam_t[rows][0] for R, rows in zip(self._R0, self._cam_rows)]
+
+    def start(self, xyyaw) -> np.ndarray:
+        p = np.zeros(self.n_p)
+        p[:3] = xyyaw
+        if self.zfree:
+            p[3] = self.h
+        return p
+
+    def theta(self, p) -> np.ndarray:
+        return planar_theta(p[0], p[1], p[2], p[3] if self.zfree else self.h)
+
+    def corrected(self, p) -> Corners:
+        """c with each camera's extrinsics corrected by p's share: R' = exp(w) R, centre' = centre + dc."""
+        if not self.n_c:
+            return self.c
+        c, cols, k = self.c, self.calib.columns, len(self.calib.columns)
+        R, t = c.cam_R.copy(), c.cam_t.copy()
+        for i, rows in enumerate(self._cam_rows):
+            corr = np.zeros(6)
+            corr[cols] = p[self.n_pose + i * k:self.n_pose + (i + 1) * k]
+            Rk = rodrigues(corr[:3]) @ self._R0[i]
+            R[rows] = Rk
+            t[rows] = -Rk @ (self._centre0[i] + corr[3:])
+        return Corners(c.units, c.unit_of, c.pixels, c.corner_of, c.roof_points, R, t, c.cam_K, c.cam_c)
+
+    def pixels(self, p):
+        """(raw pixel residuals (2N,), their Jacobian (2N, n_p), every corner in front of its camera)."""
+        theta = self.theta(p)
+        cc = self.corrected(p)
+        ev = evaluate(cc, theta)
+        J = ev.J_px[:, self.cols]
+        if self.n_c:
+            J = np.hstack([J, calib_columns(cc, theta, self.calib)])
+        return ev.r_px, J, ev.in_front
+
+    def residuals(self, sigma: float):
+        A = self.row_w[:, None] * self.T / sigma
+        n_prior = len(self.prior_rows)
+        J_prior = np.zeros((n_prior, self.n_p))
+        J_prior[np.arange(n_prior), self.prior_rows] = self.prior[self.prior_rows]
+        offset = np.zeros(self.n_p)
+        if self.zfree:
+            offset[3] = self.h
+
+        def fun(p):
+            r_px, J_px, ok = self.pixels(p)
+            r = np.concatenate([A @ r_px, (p - offset)[self.prior_rows] * self.prior[self.prior_rows]])
+            if not ok:
+                r = np.full_like(r, np.inf)
+            return r, np.vstack([A @ J_px, J_prior])
+
+        return fun
+
+    def minimise(self, p0, sigma: float):
+        return levenberg_marquardt(self.residuals(sigma), p0)
+
+    def statistics(self, p, sigma: float, sigma_noise: float | None = None) -> "LevelStats":
+        """At p, weighted with sigma; the covariance under whitened pixel noise sigma_noise (default sigma)."""
+        r_px, J_px, ok = self.pixels(p)
+        Jw = self.T @ J_px / sigma  # whitened, unweighted
+        d2 = self.row_w ** 2
+        P2 = np.diag(self.prior ** 2)
+        JtD2J = Jw.T @ (d2[:, None] * Jw)
+        H = JtD2J + P2
+        H_inv = safe_inverse(H)
+        noise2 = 1.0 if sigma_noise is None else (sigma_noise / sigma) ** 2
+        B = noise2 * (Jw.T @ ((d2 ** 2)[:, None] * Jw)) + P2
+        cov = H_inv @ B @ H_inv
+        finite = bool(np.all(np.isfinite(H_inv)))
+        dof = float(np.sum(d2) - np.trace(H_inv @ JtD2J)) if finite else 0.0
+        rw = self.row_w * (self.T @ r_px)
+        # Residual a one-sigma prior error (roof height, calibration) leaves: p moves by -H⁻¹P²·delta.
+        n = max(self.c.n, 1)
+        M = J_px @ H_inv if finite else np.full_like(J_px, np.inf)
+        per = np.sum(M * M, axis=0) * self.prior ** 2
+        height2 = float(per[3]) if self.zfree else 0.0
+        return LevelStats(r_px, J_px, rw, cov, H_inv, dof, math.sqrt(height2 / n),
+                          math.sqrt(float(per[self.n_pose:].sum()) / n), ok)
+
+
+@dataclass
+class LevelStats:
+    r_px: np.ndarray  # raw pixel residuals
+    J_px: np.ndarray
+    r_white: np.ndarray  # whitened, weighted residuals (px of the whitened sigma)
+    cov: np.ndarray  # (n_p, n_p)
+    H_inv: np.ndarray
+    dof: float
+    height_rms_px: float
+    calib_rms_px: float
+    in_front: bool
+
+
+# ---- fits --------------------------------------------------------------------------------------------
+@dataclass
+class SubsetFit:
+    """A level fit of some of c's units (no unit weights; calibration unknowns only in SubsetFits.own)."""
+
+    units: tuple[int, ...]
+    corners: Corners
+    p: np.ndarray
+    theta: np.ndarray
+    r_white: np.ndarray  # whitened residuals (px)
+    J_white: np.ndarray  # whitened Jacobian over (x, y, yaw[, z]) (px)
+    dof: float
+    converged: bool
+
+
+class SubsetFits:
+    """Level fits of subsets of c's units (by index in c), each computed once: the outlier test's
+    leave-one-out fits and the misfit weights' one-tag fits are often the same ones. sigma_w: the
+    whitened sigma that weighs the pixels against the roof-height prior."""
+
+    def __init__(self, c: Corners, h: float, sigma_h: float, turn_ratio: float | None, sigma_w: float):
+        self.c, self.h, self.sigma_h, self.turn_ratio, self.sigma_w = c, h, sigma_h, turn_ratio, sigma_w
+        self.blocks = edge_blocks(c.pixels, turn_ratio)  # per unit: build_corners keeps 4 rows per unit
+        self._fits: dict[tuple[int, ...], SubsetFit | None] = {}
+        self._units: dict[int, Corners] = {}
+
+    def whitener(self, units) -> np.ndarray:
+        return block_diag(*self.blocks[list(units)])
+
+    def unit(self, k: int) -> Corners:
+        if k not in self._units:
+            self._units[k] = self.c.subset([k])
+        return self._units[k]
+
+    def get(self, units) -> SubsetFit | None:
+        key = tuple(sorted(int(u) for u in units))
+        if key not in self._fits:
+            self._fits[key] = self._fit(key)
+        return self._fits[key]
+
+    def own(self, k: int, calib: Calibration = KNOWN) -> SubsetFit | None:
+        """Unit k fitted alone; with its camera's rotation correction as an unknown with its prior when
+        the rotation is uncertain: a camera's rotation error makes a level tag look tilted, which at
+        high resolution is a misfit well above the corner noise, not a sign of a garbled tag."""
+        if not calib.rot_sigma > 0:
+            return self.get((k,))
+        key = ("own", int(k))
+        if key not in self._fits:
+            self._fits[key] = self._fit((int(k),), Calibration(calib.rot_sigma, 0.0))
+        return self._fits[key]
+
+    def _fit(self, key, calib: Calibration = KNOWN) -> SubsetFit | None:
+        sub = self.unit(key[0]) if len(key) == 1 else self.c.subset(list(key))
+        start = initial_pose(sub, self.h, None)
+        if start is None:
+            return None
+        T = self.whitener(key)
+        prob = LevelProblem(sub, self.h, self.sigma_h, calib, self.turn_ratio, whitener=T)
+        res = prob.minimise(prob.start(start), self.sigma_w)
+        if not np.all(np.isfinite(res.theta)):
+            return None
+        r_px, J_px, ok = prob.pixels(res.theta)
+        Jw = T @ J_px
+        H = Jw.T @ Jw / self.sigma_w ** 2 + np.diag(prob.prior ** 2)
+        H_inv = safe_inverse(H)
+        dof = (2 * sub.n - float(np.trace(H_inv @ (Jw.T @ Jw))) / self.sigma_w ** 2
+               if np.all(np.isfinite(H_inv)) else 0.0)
+        return SubsetFit(key, sub, res.theta, prob.theta(res.theta), T @ r_px, Jw, dof, res.converged and ok)
+
+
+def misfit_weights(fits: SubsetFits, units: list[int], floor_w: float,
+                   calib: Calibration = KNOWN) -> tuple[np.ndarray, float | None, np.ndarray]:
+    """Per unit (in `units` order): min(1, (MISFIT_FACTOR·r_min / r_k)^MISFIT_POWER) from each one's fit
+    alone (r_k: RMS of its whitened residual); the pooled whitened sigma of those fits as the joint fit
+    will weigh them (None if there is none); and r_k / r_min.
+    A unit that cannot be fitted alone keeps weight 1. Two good tags' own misfits (4–5 degrees of
+    freedom each) differ by 3× one time in ten; a garbled tag's is (measured) 15–2000× the best."""
+    own, ss, dof = [], [], []
+    for k in units:
+        f = fits.own(k, calib)
+        if f is None or not f.converged:
+            own.append(math.nan)
+            continue
+        own.append(math.sqrt(float(np.mean(f.r_white ** 2))))
+        ss.append(float(f.r_white @ f.r_white))
+        dof.append(max(f.dof, 0.0))
+    own = np.array(own)
+    good = np.isfinite(own)
+    if not good.any():
+        return np.ones(len(units)), None, own
+    ref = max(float(own[good].min()), floor_w)
+    excess = np.where(good, np.maximum(own / (MISFIT_FACTOR * ref), 1.0), 1.0)
+    w = 1.0 / excess ** MISFIT_POWER
+    w2 = w[good] ** 2  # as the weighted fit counts them
+    pooled = math.sqrt(float(np.dot(w2, ss)) / max(float(np.dot(w2, dof)), 1e-9))
+    return w, max(pooled, floor_w), own / ref
+
+
+def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | None = None,
+              calib: Calibration = KNOWN, turn_ratio: float | None = TURN_RATIO, unit_weights=None,
+              sigma0_w: float | None = None, calib_alpha: float = 1e-3) -> Fit:
+    """The weighted level-roof fit from start = (x, y, yaw). sigma_px: corner noise per coordinate if known.
+    Else sigma0_w, when given, is the whitened noise the tags' own fits show (misfit_weights): the fit
+    weighs with it (or with the smaller noise its own residual shows), and the covariance takes the noise
+    its own residual shows; without sigma0_w (one tag) sigma is estimated from the fit's residual and the
+    fit redone until it settles. Returns a Fit
+    whose fit_rms_px is the RMS of the weighted pixel residuals (what the fit fits) and whose
+    height_rms_px / calib_rms_px are the residuals a one-sigma roof-height / calibration error leaves.
+    A camera whose estimated extrinsic correction is beyond its calibration prior (chi-square above its
+    1 − calib_alpha quantile; the estimate shrinks toward the prior, so an honest error stays below it
+    at least that often) makes the fit unusable: the cameras disagree by more than their calibration."""
+    scale = noise_scale(turn_ratio)
+    floor_w, prior_w = SIGMA_FLOOR_PX / scale, DETECTOR_SIGMA_PX / scale
+    prob = LevelProblem(c, h, sigma_h, calib, turn_ratio, unit_weights)
+    known = sigma_px is not None
+    p = prob.start(start)
+    if known:
+        sigma = sigma_cov = sigma_px / scale
+        res = prob.minimise(p, sigma)
+        p = res.theta
+    elif sigma0_w is not None:
+        # Weighed with the tags' own-shape noise, or with the joint fit's own when that is smaller (the
+        # cameras' corrections explain part of the own fits' misfit: a camera's rotation error looks
+        # like a tilted tag), never with more: the tags' (or cameras') disagreement with each other must
+        # not be explained away as pixel noise.
+        sigma = sigma0_w
+        for _ in range(MAX_ROUNDS):
+            res = prob.minimise(p, sigma)
+            p = res.theta
+            if not np.all(np.isfinite(p)):
+                sigma_cov = sigma
+                break
+            st = prob.statistics(p, sigma)
+            sigma_cov = estimate_sigma(float(st.r_white @ st.r_white), st.dof, floor=floor_w, prior=prior_w)
+            if sigma_cov >= 0.9 * sigma:
+                break
+            sigma = sigma_cov
+    else:
+        sigma = prior_w
+        for _ in range(MAX_ROUNDS):  # sigma from the fit's own residuals, the fit redone with it
+            res = prob.minimise(p, sigma)
+            p = res.theta
+            if not np.all(np.isfinite(p)):
+                break
+            st = prob.statistics(p, sigma)
+            new = estimate_sigma(float(st.r_white @ st.r_white), st.dof, floor=floor_w, prior=prior_w)
+            done = abs(new / sigma - 1.0) <= 0.1
+            sigma = new
+            if done:
+                break
+        sigma_cov = sigma
+    # The covariance of the fit as weighted (the sandwich) under the noise found in its residual.
+    st = prob.statistics(p, sigma, sigma_cov)
+    theta = prob.theta(p)
+    note = None
+    if not st.in_front:
+        note = "pose puts the tag behind the camera"
+    elif not res.converged:
+        note = "level-roof fit did not converge"
+    elif prob.n_c:
+        k = len(calib.columns)
+        for i, cam_id in enumerate(prob.cams):
+            z = p[prob.n_pose + i * k:prob.n_pose + (i + 1) * k] / calib.sigmas
+            chi2, limit = float(z @ z), _chi2_quantile(calib_alpha, k)
+            if not chi2 <= limit:
+                note = (f"camera {cam_id}'s extrinsics disagree with the other observations beyond their "
+                        f"calibration uncertainty (chi2 {chi2:.3g} > {limit:.3g})")
+                break
+    fit = Fit("level", theta, st.cov[:3, :3], rms(st.r_px), sigma_cov * scale, c,
+              converged=res.converged and st.in_front, dof=st.dof, fit_rms_px=rms(prob.row_w * st.r_px),
+              height_rms_px=st.height_rms_px, calib_rms_px=st.calib_rms_px, note=note)
+    return fit
+
+
+def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float, sigma_px: float | None,
+                        calib: Calibration, turn_ratio: float | None, fits: SubsetFits | None,
+                        weigh_misfits: bool = True, calib_alpha: float = 1e-3) -> tuple[Fit | None, list[dict]]:
+    """The level solver on c's units `keep` (those that passed the outlier test, whose fits on c it
+    reuses): misfit weights from each unit's own fit, then the joint fit. Returns the fit (None when no
+    start is found) and the units left out because their weight fell below MISFIT_DROP_WEIGHT
+    ({"tag", "camera", "reason"})."""
+    scale = noise_scale(turn_ratio)
+    weights, sigma0_w, dropped = None, None, []
+    keep = list(keep)
+    if len(keep) >= 2 and weigh_misfits:
+        if fits is None or fits.turn_ratio != turn_ratio or fits.c is not c:
+            sigma_w = sigma_px / scale if sigma_px is not None else DETECTOR_SIGMA_PX / scale
+            fits = SubsetFits(c, h, sigma_h, turn_ratio, sigma_w)
+        weights, sigma0_w, ratio = misfit_weights(fits, keep, SIGMA_FLOOR_PX / scale, calib)
+        out = weights < MISFIT_DROP_WEIGHT
+        if out.any():
+            for k, r in zip(np.array(keep)[out], ratio[out]):
+                unit = c.units[int(k)]
+                dropped.append({"tag": unit.tag_id, "camera": unit.camera.id,
+                                "reason": f"corners misfit the tag's shape ({r:.0f}x the best tag's residual)"})
+            keep = [k for k, o in zip(keep, out) if not o]
+            weights = weights[~out]
+    kept = c if keep == list(range(len(c.units))) else c.subset(keep)
+    start = initial_pose(kept, h, None)
+    if start is None:
+        return None, dropped
+    return fit_level(kept, h, start, sigma_h=sigma_h, sigma_px=sigma_px, calib=calib, turn_ratio=turn_ratio,
+                     unit_weights=weights, sigma0_w=sigma0_w, calib_alpha=calib_alpha), dropped
