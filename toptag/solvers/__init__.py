@@ -11,8 +11,8 @@ honest covariances, an outlier-tag test, plausibility checks and the Cramér–R
 from toptag.solvers.api import METHODS, canonical_method, solve
 from toptag.solvers.common import SIGMA_H_DEFAULT, PoseSolution
 from toptag.solvers.crlb import Crlb, position_crlb
-from toptag.solvers.level import TURN_RATIO
+from toptag.solvers.level import DETECTOR_BIAS, NO_BIAS, TURN_RATIO, DetectorBias
 from toptag.solvers.robust import Limits
 
 __all__ = ["solve", "PoseSolution", "Limits", "position_crlb", "Crlb", "METHODS", "canonical_method",
-           "SIGMA_H_DEFAULT", "TURN_RATIO"]
+           "SIGMA_H_DEFAULT", "TURN_RATIO", "DetectorBias", "DETECTOR_BIAS", "NO_BIAS"]

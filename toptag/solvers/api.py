@@ -9,7 +9,7 @@ from toptag.detection import TagObservation
 from toptag.solvers.bas import fit_bas
 from toptag.solvers.common import SIGMA_H_DEFAULT, Fit, PoseSolution
 from toptag.solvers.hopt import fit_hopt, initial_pose
-from toptag.solvers.level import TURN_RATIO, solve_level_corners
+from toptag.solvers.level import DETECTOR_BIAS, TURN_RATIO, DetectorBias, solve_level_corners
 from toptag.solvers.model import Calibration, Corners, build_corners
 from toptag.solvers.robust import (
     Limits,
@@ -38,7 +38,7 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
           weighting: str = "paper", sigma_px: float | None = None, sigma_h: float = SIGMA_H_DEFAULT,
           mu: float = 1.0, robust: bool = True, height_model: str = "common",
           limits: Limits | None = None, calib_rot_sigma: float = 0.0, calib_trans_sigma: float = 0.0,
-          turn_ratio: float | None = TURN_RATIO) -> PoseSolution:
+          turn_ratio: float | None = TURN_RATIO, detector_bias: DetectorBias = DETECTOR_BIAS) -> PoseSolution:
     """Estimate the vehicle pose with Bas., H.Opt., S.Opt. or the level-roof solver ("level").
 
     observations: TagObservations of this vehicle's tags from one or more cameras (ideal pixels).
@@ -54,6 +54,9 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
     the level solver estimates every camera's correction with that prior.
     turn_ratio: the level solver's corner-noise model (level.py: sigma of an edge line's turn over its
     offset's; None: independent corner coordinates). The other solvers assume independent coordinates.
+    detector_bias: corner errors shared by a tag's or an image's corners, which the level solver's
+    covariance carries (level.DetectorBias; default: measured on toptag's rendered frames; NO_BIAS for
+    synthetic independent noise).
     robust: drop tags whose corners disagree with the rest (and, level, weigh down tags whose own
     corners misfit a tag's shape). limits: when to refuse a pose.
     Never raises on bad data: an unusable or implausible result comes back with ok=False and `error`."""
@@ -95,7 +98,8 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
             if method == "level":
                 fit, misfits = solve_level_corners(corners, keep, h, sigma_h=sigma_h, sigma_px=sigma_px, calib=calib,
                                                    turn_ratio=turn_ratio, fits=screened if robust else None,
-                                                   weigh_misfits=robust, calib_alpha=limits.outlier_alpha)
+                                                   weigh_misfits=robust, calib_alpha=limits.outlier_alpha,
+                                                   bias=detector_bias)
                 dropped += misfits
                 fits = None if fit is None else (fit, fit)
             else:
