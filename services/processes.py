@@ -13,6 +13,21 @@ from pathlib import Path
 TOPTAG = [sys.executable, "-m", "toptag"]
 
 
+def stop_process(popen: subprocess.Popen, sig: int = signal.SIGTERM, grace_s: float = 5.0) -> int | None:
+    """Send `sig` to the process by its PID and wait; SIGKILL it if it outlives the grace. Its exit code."""
+    if popen.poll() is None:
+        try:
+            os.kill(popen.pid, sig)
+        except ProcessLookupError:
+            pass
+        try:
+            popen.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            os.kill(popen.pid, signal.SIGKILL)
+            popen.wait(5.0)
+    return popen.returncode
+
+
 @dataclass
 class Child:
     name: str
@@ -59,17 +74,7 @@ class ProcessGroup:
         """SIGTERM each (in the given order, waiting for each), SIGKILL what ignores it; exit codes."""
         codes: dict[str, int | None] = {}
         for c in list(children if children is not None else reversed(self.children)):
-            if c.alive():
-                try:
-                    os.kill(c.pid, signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
-                try:
-                    c.popen.wait(grace_s)
-                except subprocess.TimeoutExpired:
-                    os.kill(c.pid, signal.SIGKILL)
-                    c.popen.wait(2.0)
-            codes[c.name] = c.popen.returncode
+            codes[c.name] = stop_process(c.popen, grace_s=grace_s)
         return codes
 
     def wait_for_log(self, child: Child, text: str, timeout: float) -> bool:

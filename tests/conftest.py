@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from services.common import wait_until
+from services.processes import stop_process
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -95,17 +96,7 @@ class Launched:
 
     def stop(self, sig=signal.SIGTERM, timeout: float = 5.0) -> int:
         """Send ``sig`` to this PID, wait; SIGKILL if it does not exit. Returns the exit code."""
-        if self.proc.poll() is None:
-            try:
-                os.kill(self.pid, sig)
-            except ProcessLookupError:
-                pass
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                os.kill(self.pid, signal.SIGKILL)
-                self.proc.wait(5)
-        return self.proc.returncode
+        return stop_process(self.proc, sig, timeout)
 
 
 @pytest.fixture
