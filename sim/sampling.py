@@ -23,13 +23,20 @@ def camera_heading(camera: Camera) -> float:
     return float(np.arctan2(fwd[1], fwd[0]))
 
 
-def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> bool:
-    """Every tag's printed plate (with its white border) projects inside the image."""
+def visible_tags(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> list[int]:
+    """The tags whose whole printed plate (with its white border) projects inside the image (occlusion
+    not considered)."""
+    seen = []
     for tid in pv.vehicle.tag_ids:
         world = vehicle_to_world(pv.vehicle.plate_corners(tid), pv.x, pv.y, pv.yaw, pv.roof_z)
-        if np.any(camera.to_camera(world)[:, 2] <= 0) or not np.all(camera.in_image(camera.project(world), margin_px)):
-            return False
-    return True
+        if np.all(camera.to_camera(world)[:, 2] > 0) and np.all(camera.in_image(camera.project(world), margin_px)):
+            seen.append(tid)
+    return seen
+
+
+def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> bool:
+    """Every tag's printed plate projects inside the image."""
+    return len(visible_tags(camera, pv, margin_px)) == len(pv.vehicle.tag_ids)
 
 
 def footprints_overlap(a, b, clearance: float = 0.5) -> bool:

@@ -35,10 +35,9 @@ from sim.image_model import ImageModel
 from sim.motion import Trajectory, bus_trajectory
 from sim.raster import raster_for
 from sim.render import Occluder, PlacedVehicle, render_jpeg
-from sim.sampling import footprints_overlap
+from sim.sampling import footprints_overlap, visible_tags
 from sim.scenario import BusEntry, Leg, Scenario, TruckEntry, leg_seed
 from toptag.camera import Camera
-from toptag.geometry import vehicle_to_world
 from toptag.inputs import InputError
 from toptag.site import MapFile
 from toptag.vehicle import Vehicle
@@ -376,15 +375,7 @@ class World:
         """Per bus on the road: the tags whose whole printed plate projects inside the RSU's image
         (trucks' occlusion not considered)."""
         cam = self.camera(rsu_id)
-        out = {}
-        for pv in self.vehicles_at(t_ns):
-            seen = []
-            for tid in pv.vehicle.tag_ids:
-                w = vehicle_to_world(pv.vehicle.plate_corners(tid), pv.x, pv.y, pv.yaw, pv.roof_z)
-                if np.all(cam.to_camera(w)[:, 2] > 0) and np.all(cam.in_image(cam.project(w), margin_px)):
-                    seen.append(tid)
-            out[pv.vehicle.id] = seen
-        return out
+        return {pv.vehicle.id: visible_tags(cam, pv, margin_px) for pv in self.vehicles_at(t_ns)}
 
     # ---- sensors ---------------------------------------------------------------------------
     def imu_between(self, bus_id: str, t_from_ns: int, t_to_ns: int) -> ImuBatch:

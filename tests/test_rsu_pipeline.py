@@ -9,10 +9,10 @@ from services.rsu.regions import acquisition_bands, tag_extent_by_row
 from sim.image_model import ImageModel
 from sim.motion import bus_trajectory
 from sim.render import Occluder, PlacedVehicle, render
-from sim.sampling import footprints_overlap, segment_hits_box
+from sim.sampling import footprints_overlap, segment_hits_box, visible_tags
 from sim.scene import bundled_vehicle, rsu_camera
 from toptag.detection import DetectorSettings
-from toptag.geometry import rot_z
+from toptag.geometry import vehicle_to_world
 from toptag.vehicle import Vehicle
 
 
@@ -72,11 +72,9 @@ def test_unannounced_bus_is_never_reported(bus_pass):
 def clear_tag_in_view(camera, pv, others) -> bool:
     """Some tag of pv is fully in the image and no other vehicle stands in front of its plate."""
     boxes = [Occluder(o.length, o.width, o.roof_z, o.x, o.y, o.yaw) for o in others]
-    for tid in pv.vehicle.tag_ids:
-        one = PlacedVehicle(Vehicle(pv.vehicle.spec.model_copy(update={"tags": [pv.vehicle.tags[tid]]})),
-                            pv.x, pv.y, pv.yaw, pv.roof_z)
-        plate = one.vehicle.plate_corners(tid) @ rot_z(pv.yaw).T + [pv.x, pv.y, pv.roof_z]
-        if tags_in_view(camera, one) and not any(segment_hits_box(camera.center, q, b) for q in plate for b in boxes):
+    for tid in visible_tags(camera, pv):
+        plate = vehicle_to_world(pv.vehicle.plate_corners(tid), pv.x, pv.y, pv.yaw, pv.roof_z)
+        if not any(segment_hits_box(camera.center, q, b) for q in plate for b in boxes):
             return True
     return False
 

@@ -14,17 +14,14 @@ from services.rsu.pipeline import PipelineSettings, RsuPipeline
 from sim.image_model import ImageModel
 from sim.motion import bus_trajectory
 from sim.render import PlacedVehicle, render
-from sim.sampling import plates_in_view
+from sim.sampling import visible_tags
 from sim.scene import bundled_vehicle, rsu_camera
 from toptag.detection import DetectorSettings
-from toptag.vehicle import Vehicle
 
 
 def tags_in_view(camera, pv: PlacedVehicle) -> bool:
     """At least one of the bus's tag plates lies fully inside the image."""
-    v = pv.vehicle
-    return any(plates_in_view(camera, PlacedVehicle(Vehicle(v.spec.model_copy(update={"tags": [tag]})),
-                                                    pv.x, pv.y, pv.yaw, pv.roof_z)) for tag in v.spec.tags)
+    return bool(visible_tags(camera, pv))
 
 
 def simulated_pass(width: int, height: int, frames: int, fps: float, seed: int = 0):
