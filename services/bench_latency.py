@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import sys
 import tempfile
 import threading
@@ -27,13 +26,7 @@ from services.common import (
     serve_session,
     subscribe_messages,
 )
-from services.processes import TOPTAG, ProcessGroup
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from services.processes import TOPTAG, ProcessGroup, free_port
 
 
 def _frames(camera, count: int, seed: int = 0):
@@ -56,7 +49,7 @@ def run(frames: int = 150, fps: float = 10.0, progress=print) -> dict:
     vehicle = Vehicle.load(site / "bus-17.json")
     progress(f"rendering {min(frames, 50)} frames ...")
     jpegs = _frames(camera, min(frames, 50))
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     group = ProcessGroup(Path(tempfile.mkdtemp(prefix="toptag-bench-")))
     router = group.start("router", TOPTAG + ["router", "--listen", endpoint])
     try:

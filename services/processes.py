@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -11,6 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 TOPTAG = [sys.executable, "-m", "toptag"]
+
+
+def free_port() -> int:
+    """A TCP port the OS just handed out on 127.0.0.1 (free at the time of the call)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def stop_process(popen: subprocess.Popen, sig: int = signal.SIGTERM, grace_s: float = 5.0) -> int | None:

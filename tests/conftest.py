@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -12,24 +11,16 @@ from pathlib import Path
 import pytest
 
 from services.common import wait_until
+from services.processes import free_port as _free_port
 from services.processes import stop_process
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _free_port() -> int:
-    """A TCP port the OS just handed out on 127.0.0.1 (free at the time of the call)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
 def free_port():
     """free_port() -> int."""
     return _free_port
-
-
 
 
 # ---- zenoh sessions ---------------------------------------------------------------------------

@@ -10,20 +10,13 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import socket
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-from services.processes import TOPTAG, ProcessGroup
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from services.processes import TOPTAG, ProcessGroup, free_port
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,7 +41,7 @@ def main(argv: list[str]) -> int:
         print(f"toptag demo: {e}", file=sys.stderr)
         return 2
     log_dir = Path(args.logs) if args.logs else Path(tempfile.mkdtemp(prefix="toptag-demo-"))
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     client = ["--zenoh-mode", "client", "--connect", endpoint]
     group = ProcessGroup(log_dir)
     stop = threading.Event()
