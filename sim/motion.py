@@ -429,10 +429,6 @@ def bus_trajectory(kind: str = "left", approach: str = "w", speed: float = MAX_S
     return Trajectory(path, prof, bounce, t0_ns, name=f"{kind}-{approach}{suffix}")
 
 
-def route_names() -> list[str]:
-    return ["straight", "left", "right", "stop"]
-
-
 # --------------------------------------------------------------------------------------------
 # IMU / odometry
 # --------------------------------------------------------------------------------------------

@@ -130,16 +130,6 @@ class Camera:
     def with_extrinsics(self, R_wc, T_wc) -> "Camera":
         return Camera(self.id, self.width, self.height, self.K, self.dist, R_wc, T_wc)
 
-    def scaled(self, width: int, height: int, id: str | None = None) -> "Camera":
-        """The same optics and pose at another resolution (same field of view)."""
-        sx, sy = width / self.width, height / self.height
-        K = self.K.copy()
-        K[0, 0] *= sx
-        K[1, 1] *= sy
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-        return Camera(id or self.id, width, height, K, self.dist, self.R, self.t)
-
     # ---- geometry -----------------------------------------------------------------------------
     @property
     def center(self) -> np.ndarray:

@@ -58,11 +58,6 @@ def nearest_rotation(M) -> np.ndarray:
     return U @ D @ Vt
 
 
-def yaw_of(R) -> float:
-    """Heading of a body whose x axis is R[:, 0], projected on the ground plane."""
-    return float(np.arctan2(R[1, 0], R[0, 0]))
-
-
 def vehicle_to_world(points_top, x: float, y: float, yaw: float, z: float) -> np.ndarray:
     """Points in the vehicle-top frame (N,3) to world, for a vehicle at (x, y, yaw) with roof height z."""
     P = np.asarray(points_top, dtype=float).reshape(-1, 3)

@@ -178,12 +178,6 @@ class RsuPipeline:
             track.update(t_ns, x, y, yaw, z)
             self._hints[vehicle_id] = track
 
-    def reset_tracks(self) -> None:
-        for t in self.tracks.values():
-            t.reset()
-        self._hints.clear()
-        self._coarse.clear()
-
     def _pool(self) -> _DetectorPool:
         families = tuple(sorted({v.family for v in self.vehicles.values()}))
         if families not in self._pools:
