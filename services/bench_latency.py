@@ -18,7 +18,7 @@ import numpy as np
 
 from protocol import keys
 from protocol.messages import Approach, Frame, PoseFix
-from services.common import (
+from protocol.transport import (
     MessagePublisher,
     declare_alive,
     open_session,

@@ -21,7 +21,7 @@ import numpy as np
 
 from protocol import keys
 from protocol.messages import FusedPose, GroundTruth, PoseFix, RsuStatus
-from services.common import (
+from protocol.transport import (
     MessageCounters,
     ZenohSetupError,
     add_zenoh_arguments,

@@ -21,7 +21,7 @@ import threading
 
 import zenoh
 
-from services.common import (
+from protocol.transport import (
     ZenohSetupError,
     add_zenoh_arguments,
     config_summary,

@@ -9,7 +9,7 @@ import sys
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from services.common import (
+from protocol.transport import (
     ZenohSetupError,
     add_zenoh_arguments,
     open_session,

@@ -37,7 +37,7 @@ import numpy as np
 
 from protocol import keys
 from protocol.messages import Frame, GnssFix, GroundTruth, Imu
-from services.common import (
+from protocol.transport import (
     MessagePublisher,
     ZenohSetupError,
     add_zenoh_arguments,

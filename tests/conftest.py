@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from services.common import wait_until
 from services.processes import free_port as _free_port
 from services.processes import stop_process
+from toptag.waiting import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -28,7 +28,7 @@ def free_port():
 @pytest.fixture
 def zenoh_session():
     """zenoh_session(mode="peer", listen=[...], connect=[...]) -> zenoh.Session; all closed at teardown."""
-    from services.common import open_session
+    from protocol.transport import open_session
 
     sessions = []
 

@@ -79,7 +79,7 @@ def test_compose_file_is_json_and_has_the_demo_services(compose):
 
 
 def test_every_service_is_a_zenoh_client_of_the_router_without_multicast(compose):
-    from services.common import zenoh_config_from_args
+    from protocol.transport import zenoh_config_from_args
 
     for s in compose.values():
         if not s.is_toptag:
@@ -98,7 +98,7 @@ def test_every_service_is_a_zenoh_client_of_the_router_without_multicast(compose
 def test_router_is_the_official_image_with_the_config_from_docker_dir(compose):
     import zenoh
 
-    from services.common import zenoh_config_from_args
+    from protocol.transport import zenoh_config_from_args
     from services.router import build_parser
 
     r = compose["router"]
@@ -202,7 +202,7 @@ def test_secured_variant_names_the_files_toptag_certs_writes(tmp_path, compose):
 
     import zenoh
 
-    from services.common import zenoh_config_from_args
+    from protocol.transport import zenoh_config_from_args
 
     if shutil.which("openssl") is None:
         pytest.skip("toptag certs needs the openssl command")
@@ -344,7 +344,7 @@ RECORDER = r"""
 import argparse, json, signal, sys, threading, time
 from protocol import keys
 from protocol.messages import FusedPose, GroundTruth, PoseFix, RsuStatus
-from services.common import add_zenoh_arguments, open_session, subscribe_messages, zenoh_config_from_args
+from protocol.transport import add_zenoh_arguments, open_session, subscribe_messages, zenoh_config_from_args
 p = argparse.ArgumentParser()
 p.add_argument("out")
 add_zenoh_arguments(p)

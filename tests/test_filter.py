@@ -1,4 +1,4 @@
-"""The bus filter (services/bus/filter.py): delayed fixes at capture time, ordering independence,
+"""The bus filter (toptag/fusion/filter.py): delayed fixes at capture time, ordering independence,
 admission (duplicates, too old, before start), chi-square gating that a starving filter cannot be
 talked out of, honest degradation without fixes, start-up and re-acquisition."""
 import math
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from services.bus.filter import BusFilter, FilterConfig, FusedPose
-from services.bus.fixes import FixOutcome, PoseFix
 from sim.motion import ImuModel, bus_trajectory
 from sim.scene import rsu_mounts
+from toptag.fusion.filter import BusFilter, FilterConfig, FusedPose
+from toptag.fusion.fixes import FixOutcome, PoseFix
 
 MS = 1_000_000
 RSUS = {m.id: m.position[:2] for m in rsu_mounts()}
@@ -371,7 +371,7 @@ def test_fixes_without_sequence_numbers_and_from_wire_dicts(left_turn):
 
 
 def test_fusion_study_writes_results_in_the_agreed_shape(tmp_path):
-    from toptag.studies import fusion
+    from sim.studies import fusion
 
     res = fusion.run(tmp_path, [0, 200], jitter_ms=30, seed=1, runs=2, plots=False, log=lambda *_: None)
     saved = __import__("json").loads((tmp_path / "results.json").read_text())

@@ -4,8 +4,6 @@ import numpy as np
 import pytest
 
 from services.rsu.bench import simulated_pass, tags_in_view
-from services.rsu.pipeline import PipelineSettings, RsuPipeline
-from services.rsu.regions import acquisition_bands, tag_extent_by_row
 from sim.image_model import ImageModel
 from sim.motion import bus_trajectory
 from sim.render import Occluder, PlacedVehicle, render
@@ -13,6 +11,8 @@ from sim.sampling import footprints_overlap, segment_hits_box, visible_tags
 from sim.scene import bundled_vehicle, rsu_camera
 from toptag.detection import DetectorSettings
 from toptag.geometry import vehicle_to_world
+from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
+from toptag.rsu.regions import acquisition_bands, tag_extent_by_row
 from toptag.vehicle import Vehicle
 
 

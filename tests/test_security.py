@@ -20,8 +20,7 @@ import zenoh
 from conftest import REPO, Launched, _free_port, clean_env, make_samples
 
 from protocol import Approach, Frame, PoseFix, keys
-from services import security
-from services.common import (
+from protocol.transport import (
     MessagePublisher,
     ZenohSetupError,
     declare_alive,
@@ -33,6 +32,7 @@ from services.common import (
     watch_buses,
     zenoh_config,
 )
+from services import security
 
 RSUS, BUSES = ("rsu-sw", "rsu-se"), ("bus-17", "bus-42")
 X = "x1"
@@ -137,7 +137,7 @@ def _fix(rsu: str, bus: str, seq: int, x: float = 1.0) -> PoseFix:
 PUBLISHER = r"""
 import argparse, json, sys, time
 from protocol import PoseFix, keys
-from services.common import (MessagePublisher, ZenohSetupError, add_zenoh_arguments, open_session,
+from protocol.transport import (MessagePublisher, ZenohSetupError, add_zenoh_arguments, open_session,
                              zenoh_config_from_args)
 bus, as_rsu, base, count = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
 p = argparse.ArgumentParser(); add_zenoh_arguments(p, default_mode="client")

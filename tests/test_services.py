@@ -8,11 +8,12 @@ import pytest
 
 from protocol import keys
 from protocol.messages import Frame, GnssFix, PoseFix, RsuStatus
-from services.common import MessagePublisher, subscribe_messages, wait_until
+from protocol.transport import MessagePublisher, subscribe_messages
 from sim.render import PlacedVehicle, render_jpeg
 from sim.scenario import bundled_scenario_path
 from sim.scene import bundled_vehicle
 from toptag.camera import Camera
+from toptag.waiting import wait_until
 
 SITE = bundled_scenario_path().parent
 CAMERA = SITE / "rsu-sw.json"

@@ -267,7 +267,7 @@ class Inbox:
 
 def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launch, free_port, zenoh_session):
     from protocol import Frame, GnssFix, GroundTruth, Imu, keys
-    from services.common import subscribe_messages
+    from protocol.transport import subscribe_messages
 
     path = _write(tmp_path, _short_scenario())
     world = World(load_scenario(path))
@@ -398,7 +398,7 @@ def test_slow_rendering_skips_ticks_and_never_drifts(tmp_path, zenoh_session, fr
     """run() in-process on a real session: with a 250 ms render at 10 fps, late ticks are skipped and
     counted; the frames that go out keep their scheduled capture times."""
     from protocol import Frame, keys
-    from services.common import subscribe_messages
+    from protocol.transport import subscribe_messages
     from sim.live import run
 
     data = _short_scenario(rsus=[str(DEMO / "rsu-sw.json")])

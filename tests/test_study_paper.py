@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 
 from sim.scene import bundled_vehicle, rsu_camera
-from toptag.detection import TagObservation
-from toptag.geometry import vehicle_to_world
-from toptag.solvers import SIGMA_H_DEFAULT, Limits, position_crlb, solve
-from toptag.solvers.level import edge_whitener
-from toptag.studies import paper
-from toptag.studies.paper_models import (
+from sim.studies import paper
+from sim.studies.paper_models import (
     EdgeNoise,
     edge_components,
     measure_noise,
     pose_bound,
 )
+from toptag.detection import TagObservation
+from toptag.geometry import vehicle_to_world
+from toptag.solvers import SIGMA_H_DEFAULT, Limits, position_crlb, solve
+from toptag.solvers.level import edge_whitener
 
 SAMPLES = 16  # one per whole-metre bin, 5..20 m
 

@@ -1,4 +1,4 @@
-"""services.common and services.router over real Zenoh: peer sessions with multicast scouting off on
+"""protocol.transport and services.router over real Zenoh: peer sessions with multicast scouting off on
 tcp/127.0.0.1:<free port>, a real router subprocess, real subprocesses for liveliness. No mocks."""
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import zenoh
 from conftest import key_for
 
 from protocol import Frame, PoseFix, codec, encode, keys
-from services.common import (
+from protocol.transport import (
     LivelinessWatcher,
     MessageCounters,
     MessagePublisher,
@@ -31,11 +31,11 @@ from services.common import (
     serve_session,
     subscribe_messages,
     wait_matching,
-    wait_until,
     watch_buses,
     zenoh_config,
     zenoh_config_from_args,
 )
+from toptag.waiting import wait_until
 
 
 class Inbox:
@@ -252,7 +252,7 @@ def test_latest_only_handler_works_on_the_newest_frame_when_behind(peer_pair):
 
 def test_big_frames_through_a_router_all_arrive_with_block(router, zenoh_session):
     """1 MiB and 8 MiB frames (a 3200x2400 raw frame is 7.7 MB) via a router subprocess, both ends in
-    client mode, QoS from services.common (BLOCK)."""
+    client mode, QoS from protocol.transport (BLOCK)."""
     pub_s = zenoh_session("client", connect=[router])
     sub_s = zenoh_session("client", connect=[router])
     key = keys.frame("rsu-hi")
@@ -326,7 +326,7 @@ def test_small_message_latency_through_router(router, zenoh_session, samples):
 
 HOLD_TOKEN = """
 import sys, time
-from services.common import open_session, declare_alive
+from protocol.transport import open_session, declare_alive
 s = open_session(mode="peer", connect=[sys.argv[1]])
 token = declare_alive(s, sys.argv[2], sys.argv[3])
 print("TOKEN DECLARED", flush=True)
@@ -508,7 +508,7 @@ def test_client_without_router_fails_with_one_line(free_port):
 def test_bench_pose_fix_latency_under_8mib_frame_load(router, zenoh_session, samples, qos):
     """PoseFix latency and loss while the same client streams 8 MiB frames through the router.
     TOPTAG_BENCH=1 pytest tests/test_zenoh_plumbing.py -k bench -s"""
-    from services.common import Qos
+    from protocol.transport import Qos
     pub_s = zenoh_session("client", connect=[router])
     sub_s = zenoh_session("client", connect=[router])
     fix = samples["PoseFix"]

@@ -11,7 +11,7 @@ import sys
 # command words -> "module:function"; each function takes argv (list[str]) and returns an exit code.
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
-    ("demo",): ("toptag.demo:main", "every service as its own process on a local Zenoh network"),
+    ("demo",): ("services.demo:main", "every service as its own process on a local Zenoh network"),
     ("router",): ("services.router:main", "Zenoh router for the toptag services"),
     ("certs",): ("services.security:main", "generate a CA and TLS certificates for toptag services"),
     ("rsu",): ("services.rsu.service:main", "RSU service for one camera"),
@@ -21,8 +21,8 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("sim", "run"): ("sim.live:main", "live simulator: RSU frames and bus sensors over Zenoh"),
     ("bench", "latency"): ("services.bench_latency:main", "capture-to-arrival latency through router and RSU"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
-    ("eval", "fusion"): ("toptag.studies.fusion:main", "fused pose error against fix latency (study)"),
-    ("eval", "paper"): ("toptag.studies.paper:main", "reproduce the paper's simulation study"),
+    ("eval", "fusion"): ("sim.studies.fusion:main", "fused pose error against fix latency (study)"),
+    ("eval", "paper"): ("sim.studies.paper:main", "reproduce the paper's simulation study"),
 }
 
 

@@ -47,7 +47,7 @@ def main(argv: list[str]) -> int:
         print(f"toptag locate: {e}", file=sys.stderr)
         return 2
 
-    from services.rsu.pipeline import PipelineSettings, RsuPipeline
+    from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 
     # The RSU's own acquisition (row-banded pyramid, confirmed at full resolution) on each still image:
     # one pipeline, one set of detectors for all images.

@@ -27,10 +27,7 @@ from protocol.messages import (
     Leave,
     PoseFix,
 )
-from services.bus.filter import BusFilter, FilterConfig
-from services.bus.fixes import PoseFix as FilterFix
-from services.bus.presence import IntersectionPresence
-from services.common import (
+from protocol.transport import (
     MessageCounters,
     MessagePublisher,
     declare_alive,
@@ -39,6 +36,9 @@ from services.common import (
     subscribe_messages,
 )
 from services.runner import add_service_arguments, run_service
+from toptag.fusion.filter import BusFilter, FilterConfig
+from toptag.fusion.fixes import PoseFix as FilterFix
+from toptag.fusion.presence import IntersectionPresence
 from toptag.site import IntersectionSpec, MapFile
 from toptag.vehicle import Vehicle
 

@@ -10,13 +10,13 @@ import time
 import cv2
 import numpy as np
 
-from services.rsu.pipeline import PipelineSettings, RsuPipeline
 from sim.image_model import ImageModel
 from sim.motion import bus_trajectory
 from sim.render import PlacedVehicle, render
 from sim.sampling import visible_tags
 from sim.scene import bundled_vehicle, rsu_camera
 from toptag.detection import DetectorSettings
+from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 
 
 def tags_in_view(camera, pv: PlacedVehicle) -> bool:

@@ -20,7 +20,7 @@ from protocol import keys
 from protocol.codec import ProtocolError
 from protocol.images import frame_to_gray
 from protocol.messages import Approach, Frame, Leave, PoseFix, RsuStatus
-from services.common import (
+from protocol.transport import (
     REJECTED,
     MessageCounters,
     MessagePublisher,
@@ -29,9 +29,9 @@ from services.common import (
     subscribe_messages,
     watch_buses,
 )
-from services.rsu.pipeline import PipelineSettings, RsuPipeline
 from services.runner import add_service_arguments, run_service
 from toptag.camera import Camera
+from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.solvers import METHODS
 from toptag.vehicle import Vehicle
 

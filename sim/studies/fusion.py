@@ -6,7 +6,7 @@ while the bus is within `range_m` of them, with the error model below, and every
 `latency + jitter` later (delay = max(0, latency + N(0, jitter)), so fixes also arrive out of order).
 
 Three estimators see the same data:
-  fused           services.bus.filter.BusFilter: each fix applied at its capture time, buffer re-propagated
+  fused           toptag.fusion.filter.BusFilter: each fix applied at its capture time, buffer re-propagated
   naive           the same EKF, each fix applied on arrival as if it were current (no gate)
   dead reckoning  the same EKF from the true initial pose, IMU / odometry only
 
@@ -16,7 +16,7 @@ independent between fixes; the reported covariance is exactly the covariance of 
 (A live image pipeline can be plugged in with `run(..., fix_source=callable)`.)
 
 Writes DIR/results.json, DIR/fusion_error_vs_latency.png, DIR/fusion_trajectory_error.png and
-DIR/fusion_nees.png. Run: `python -m toptag.studies.fusion --out DIR` (or `toptag eval fusion`).
+DIR/fusion_nees.png. Run: `python -m sim.studies.fusion --out DIR` (or `toptag eval fusion`).
 """
 from __future__ import annotations
 
@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from services.bus.filter import BusFilter, FilterConfig, wrap
-from services.bus.fixes import PoseFix
 from sim.motion import ImuModel, Trajectory, bus_trajectory
 from sim.scene import rsu_mounts
+from toptag.fusion.filter import BusFilter, FilterConfig, wrap
+from toptag.fusion.fixes import PoseFix
 
 DEFAULT_LATENCIES_MS = (0, 50, 100, 200, 300)
 

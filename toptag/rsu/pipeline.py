@@ -15,21 +15,6 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.rsu.regions import (
-    Band,
-    Box,
-    acquisition_bands,
-    disc_in_view,
-    merge_boxes,
-    projected_side_px,
-    tag_region,
-)
-from services.rsu.tracking import (
-    MAX_SPEED_MPS,
-    SPEED_MARGIN,
-    TrackSettings,
-    VehicleTrack,
-)
 from toptag.camera import Camera
 from toptag.detection import (
     DetectorSettings,
@@ -38,6 +23,21 @@ from toptag.detection import (
     assign_to_vehicles,
 )
 from toptag.geometry import vehicle_to_world
+from toptag.rsu.regions import (
+    Band,
+    Box,
+    acquisition_bands,
+    disc_in_view,
+    merge_boxes,
+    projected_side_px,
+    tag_region,
+)
+from toptag.rsu.tracking import (
+    MAX_SPEED_MPS,
+    SPEED_MARGIN,
+    TrackSettings,
+    VehicleTrack,
+)
 from toptag.solvers import PoseSolution, solve
 from toptag.vehicle import Vehicle
 

@@ -1,4 +1,4 @@
-"""Figures of `toptag eval paper` (toptag.studies.paper), drawn from its results.json dictionary.
+"""Figures of `toptag eval paper` (sim.studies.paper), drawn from its results.json dictionary.
 
 paper_<case>.png: the paper's form (position RMS and orientation RMS against distance, one line per
 solver) plus the maximum position error and every solver's ratio to the Cramér–Rao bound, with the

@@ -53,7 +53,7 @@ def main(argv: list[str]) -> int:
         print(f"toptag demo: the router did not start:\n{router.log_tail()}", file=sys.stderr)
         group.stop()
         return 1
-    from services.common import open_session
+    from protocol.transport import open_session
     from services.monitor import Monitor, write_report
 
     session = open_session(mode="client", connect=[endpoint])

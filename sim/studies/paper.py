@@ -15,7 +15,7 @@ its heading (motion blur over the exposure). Cases:
 Image model: the default ImageModel() (anti-aliasing, blur, sensor noise, JPEG, motion blur, tag
 contrast, calibration error), stated in results.json and under every figure.
 
-Detection is the RSU's: services.rsu.pipeline.RsuPipeline with tracking off (row-banded pyramid
+Detection is the RSU's: toptag.rsu.pipeline.RsuPipeline with tracking off (row-banded pyramid
 acquisition, confirmed at full resolution, far tags enlarged), once per image and RSU; every solver
 then solves the same observations:
     bas              Bas. (homography)                                       paper
@@ -52,7 +52,7 @@ prior. toptag.solvers.position_crlb with the pooled sigma (i.i.d. corners) is re
 Writes DIR/results.json, DIR/paper_<case>.png, DIR/paper_calibration.png and DIR/tables.md (the
 Markdown tables of docs/paper-study.md). Runs the samples on
 all cores (one process each, own renderer caches, OpenCV single-threaded), with a progress bar on stderr.
-Run: `toptag eval paper --out DIR` or `python -m toptag.studies.paper --out DIR`.
+Run: `toptag eval paper --out DIR` or `python -m sim.studies.paper --out DIR`.
 """
 from __future__ import annotations
 
@@ -77,17 +77,17 @@ from sim.sampling import (
     sector_pose,
 )
 from sim.scene import HIGH_RES, LOW_RES, bundled_vehicle, rsu_camera
-from toptag.camera import Camera
-from toptag.detection import TagObservation
-from toptag.geometry import vehicle_to_world, wrap_angle
-from toptag.solvers import Limits, position_crlb, solve
-from toptag.studies.paper_models import (
+from sim.studies.paper_models import (
     EdgeNoise,
     measure_noise,
     noise_at,
     outlier_flags,
     pose_bound,
 )
+from toptag.camera import Camera
+from toptag.detection import TagObservation
+from toptag.geometry import vehicle_to_world, wrap_angle
+from toptag.solvers import Limits, position_crlb, solve
 from toptag.vehicle import Vehicle
 
 DISTANCES = tuple(range(5, 21))  # whole-metre bins, metres from the RSU (horizontal)
@@ -171,7 +171,7 @@ def _worker_init() -> None:
 
 
 def _pipeline(camera: Camera):
-    from services.rsu.pipeline import PipelineSettings, RsuPipeline
+    from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 
     key = (camera.id, camera.width, camera.height)
     if key not in _WORKER:
@@ -571,7 +571,7 @@ def run(out: Path, samples: int = 200, seed: int = 0, cases=tuple(CASES), worker
                             "per_sample_s": {c: round(float(np.mean([s["seconds"] for s in done if s["case"] == c])), 3)
                                                  for c in cases}}
     (out / "results.json").write_text(json.dumps(results, indent=1, allow_nan=False))
-    from toptag.studies.paper_plots import markdown_tables, write_figures
+    from sim.studies.paper_plots import markdown_tables, write_figures
 
     (out / "tables.md").write_text(markdown_tables(results))
     if figures:

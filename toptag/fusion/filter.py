@@ -41,7 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from services.bus.fixes import FixOutcome, FixRecord, PoseFix, count_outcomes
+from toptag.fusion.fixes import FixOutcome, FixRecord, PoseFix, count_outcomes
 from toptag.geometry import wrap_angle
 
 STATE_NAMES = ("x", "y", "yaw", "speed", "yaw_rate", "gyro_bias", "wheel_scale")

@@ -1,0 +1,199 @@
+"""Safe subscribers: every sample is decoded through protocol.codec; a bad payload or a failing handler
+is counted and logged (rate-limited), never fatal.
+
+Facts this module relies on (eclipse-zenoh 1.10):
+- A subscriber on zenoh.handlers.RingChannel(1) keeps only the newest sample; skipped samples never
+  reach Python, so an RSU that falls behind does not even copy the frames it skips. A callback
+  subscriber, in contrast, queues without bound on the Python side (100 x 1 MiB frames were all
+  buffered behind a 20 ms handler): use latest_only for frames.
+- A Subscriber whose handler.recv() is blocked in another thread cannot be undeclared
+  ("Already borrowed"): block on ``sub.handler`` (a separate object), never on ``sub``.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
+
+import zenoh
+
+from protocol import codec
+from protocol.codec import ProtocolError
+from protocol.messages import Frame, Message
+from protocol.transport.counters import ACCEPTED, HANDLER_ERROR, IGNORED, REJECTED, SKIPPED, LogLimiter, MessageCounters
+
+log = logging.getLogger("toptag.zenoh")
+
+M = TypeVar("M", bound=Message)
+
+class SafeSubscriber(Generic[M]):
+    """Subscribe to ``key`` for messages of ``msg_type``; every sample is decoded with protocol.codec
+    (including the key/ids check). A bad payload is logged (one line, rate-limited) and counted as
+    ``rejected``; an exception in ``handler`` is logged and counted as ``handler_error``; neither stops
+    the subscription.
+
+    Modes:
+    - handler, latest_only=False: handler(msg) runs for every sample on a zenoh callback thread.
+    - handler, latest_only=True: samples go to a RingChannel(1); a worker thread runs handler(msg) on
+      the newest one whenever it is free (older ones are overwritten, never decoded).
+    - handler=None: a pull receiver; call recv(timeout) / try_recv() (RingChannel(1) if latest_only,
+      else a FIFO of ``capacity``).
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, msg_type: type[M],
+                 handler: Callable[[M], Any] | None = None, *, counters: MessageCounters | None = None,
+                 logger: logging.Logger | None = None, latest_only: bool = False, capacity: int = 256,
+                 check_key: bool = True):
+        self.key = str(key)
+        self.msg_type = msg_type
+        self.handler = handler
+        self.counters = counters if counters is not None else MessageCounters()
+        self.log = logger or log
+        self.latest_only = latest_only
+        self._check_key = check_key
+        self._limit = LogLimiter()
+        self._last_seq: dict[str, int] = {}
+        self._closed = threading.Event()
+        self._worker: threading.Thread | None = None
+        name = msg_type.__name__
+        self._name = name
+        if handler is not None and not latest_only:
+            self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._on_sample))
+        else:
+            channel = zenoh.handlers.RingChannel(1) if latest_only else zenoh.handlers.FifoChannel(capacity)
+            self._sub = session.declare_subscriber(self.key, channel)
+            self._channel = self._sub.handler  # block on this, never on self._sub (see module doc)
+            if handler is not None:
+                self._worker = threading.Thread(target=self._run_worker, name=f"sub-{name}-{self.key}",
+                                                daemon=True)
+                self._worker.start()
+
+    # -- decoding and accounting
+    def _decode(self, sample: zenoh.Sample) -> M | None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.counters.inc(IGNORED, self._name, self.key)
+            return None
+        skey = str(sample.key_expr)
+        try:
+            msg = codec.decode(sample.payload, self.msg_type, key=skey if self._check_key else None)
+        except ProtocolError as e:
+            self.counters.inc(REJECTED, self._name, self.key, reason=e.reason, error=str(e))
+            self._limit(self.log, logging.WARNING, "rejected payload on %s (%d bytes): %s",
+                        skey, len(sample.payload), e)
+            return None
+        except Exception as e:  # a codec bug must not kill the service either
+            self.counters.inc(REJECTED, self._name, self.key, reason="internal", error=repr(e))
+            self._limit(self.log, logging.ERROR, "cannot decode payload on %s: %s: %s",
+                        skey, type(e).__name__, e)
+            return None
+        self.counters.inc(ACCEPTED, self._name, self.key)
+        if self.latest_only:
+            seq = getattr(msg, "seq", None)
+            if isinstance(seq, int):
+                last = self._last_seq.get(skey)
+                if last is not None and seq > last + 1:
+                    self.counters.inc(SKIPPED, self._name, self.key, seq - last - 1)
+                self._last_seq[skey] = seq
+        return msg
+
+    def _call(self, msg: M) -> None:
+        try:
+            self.handler(msg)  # type: ignore[misc]
+        except Exception as e:
+            self.counters.inc(HANDLER_ERROR, self._name, self.key, error=repr(e))
+            self._limit(self.log, logging.ERROR, "handler for %s on %s failed: %s: %s",
+                        self._name, self.key, type(e).__name__, e, exc_info=True)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        if self._closed.is_set():
+            return
+        msg = self._decode(sample)
+        if msg is not None:
+            self._call(msg)
+
+    def _run_worker(self) -> None:
+        while not self._closed.is_set():
+            try:
+                sample = self._channel.recv()
+            except Exception:  # ZError: channel closed (undeclared or session closed)
+                return
+            msg = self._decode(sample)
+            if msg is not None and not self._closed.is_set():
+                self._call(msg)
+
+    # -- pull interface
+    def try_recv(self) -> M | None:
+        """The next (latest_only: the newest) valid message if one is waiting, else None."""
+        if self.handler is not None:
+            raise RuntimeError("this subscriber delivers to its handler; recv() is for handler=None")
+        while True:
+            try:
+                sample = self._channel.try_recv()
+            except Exception:
+                return None
+            if sample is None:
+                return None
+            msg = self._decode(sample)
+            if msg is not None:
+                return msg
+
+    def recv(self, timeout: float | None = None, poll_s: float = 0.001) -> M | None:
+        """Wait for the next valid message; None on timeout or once closed. Invalid payloads are
+        counted and skipped."""
+        if self.handler is not None:
+            raise RuntimeError("this subscriber delivers to its handler; recv() is for handler=None")
+        if timeout is None:
+            while not self._closed.is_set():
+                try:
+                    sample = self._channel.recv()
+                except Exception:
+                    return None
+                msg = self._decode(sample)
+                if msg is not None:
+                    return msg
+            return None
+        deadline = time.monotonic() + timeout
+        while not self._closed.is_set():
+            msg = self.try_recv()
+            if msg is not None:
+                return msg
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(poll_s)
+        return None
+
+    # -- lifecycle
+    def close(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+        if self._worker is not None and self._worker is not threading.current_thread():
+            self._worker.join(timeout=2.0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def subscribe_messages(session: zenoh.Session, key: str, msg_type: type[M],
+                       handler: Callable[[M], Any] | None = None, counters: MessageCounters | None = None,
+                       logger: logging.Logger | None = None, *, latest_only: bool = False,
+                       capacity: int = 256, check_key: bool = True) -> SafeSubscriber[M]:
+    return SafeSubscriber(session, key, msg_type, handler, counters=counters, logger=logger,
+                          latest_only=latest_only, capacity=capacity, check_key=check_key)
+
+
+def latest_receiver(session: zenoh.Session, key: str, msg_type: type[M] = Frame,
+                    counters: MessageCounters | None = None,
+                    logger: logging.Logger | None = None) -> SafeSubscriber[M]:
+    """Pull receiver that only ever holds the newest message (RingChannel(1)): recv() returns the latest
+    frame, skipping those that arrived while the caller was busy."""
+    return SafeSubscriber(session, key, msg_type, None, counters=counters, logger=logger, latest_only=True)
