@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test locate-example clean
+.PHONY: setup demo test test-unit locate-example clean
 
 setup: $(VENV)/.installed
 
@@ -20,6 +20,9 @@ locate-example: setup
 
 test: setup
 	$(BIN)/python -m pytest -q
+
+test-unit: setup  # the fast tier: pure code, no network, no child process
+	$(BIN)/python -m pytest -q -m unit
 
 clean:
 	rm -rf $(VENV) build *.egg-info

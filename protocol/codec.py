@@ -23,6 +23,7 @@ from pydantic import ValidationError
 
 from protocol import keys as _keys
 from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, Frame, Message
+from toptag.errors import ProtocolError
 from toptag.inputs import describe_validation_error
 
 FRAME_MAGIC = b"TTFR"
@@ -38,13 +39,7 @@ R_EMPTY, R_UTF8, R_JSON, R_OBJECT, R_VERSION, R_TYPE, R_FIELD, R_FRAME, R_KEY = 
     "empty", "utf8", "json", "not_object", "version", "type", "field", "frame", "key")
 
 
-class ProtocolError(ValueError):
-    """A payload is not a valid message of the expected type. str(e) is one line."""
-
-    def __init__(self, message: str, reason: str, msg_type: str = ""):
-        super().__init__(message)
-        self.reason = reason
-        self.msg_type = msg_type
+# A payload that is not a valid message of the expected type raises toptag.errors.ProtocolError.
 
 
 def _as_bytes(payload) -> bytes | memoryview:

@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from protocol.messages import PROTOCOL_VERSION, check_id
+from toptag.errors import ProtocolError
 
 ROOT = f"toptag/v{PROTOCOL_VERSION}"
 ANY = "*"
@@ -43,8 +44,11 @@ LAYOUT: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 
 
-class KeyExprError(ValueError):
+class KeyExprError(ProtocolError):
     """An id cannot be put in a key expression, or a key is not one of toptag's."""
+
+    def __init__(self, message: str):
+        super().__init__(message, reason="key")
 
 
 def _chunk(name: str, value: str) -> str:

@@ -27,6 +27,7 @@ from protocol.transport import (
     subscribe_messages,
 )
 from services.processes import TOPTAG, ProcessGroup, free_port
+from toptag.units import ms_from_ns
 
 
 def _frames(camera, count: int, seed: int = 0):
@@ -94,8 +95,8 @@ def run(frames: int = 150, fps: float = 10.0, progress=print) -> dict:
         group.stop()
     with lock:
         rows = [(arr - m.capture_time_ns, m.processing_ns or 0) for arr, m in received]
-    lat = np.array([r[0] for r in rows]) * 1e-6
-    proc = np.array([r[1] for r in rows]) * 1e-6
+    lat = ms_from_ns(np.array([r[0] for r in rows]))
+    proc = ms_from_ns(np.array([r[1] for r in rows]))
     over = lat - proc
     pct = lambda a, q: round(float(np.percentile(a, q)), 2) if a.size else None  # noqa: E731
     return {"frames_sent": frames, "fixes_received": len(rows), "fps": fps,

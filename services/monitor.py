@@ -10,8 +10,6 @@ import argparse
 import bisect
 import json
 import logging
-import signal
-import sys
 import threading
 import time
 from collections import defaultdict, deque
@@ -21,16 +19,11 @@ import numpy as np
 
 from protocol import keys
 from protocol.messages import FusedPose, GroundTruth, PoseFix, RsuStatus
-from protocol.transport import (
-    MessageCounters,
-    ZenohSetupError,
-    add_zenoh_arguments,
-    open_session,
-    subscribe_messages,
-    zenoh_config_from_args,
-)
+from protocol.transport import MessageCounters, subscribe_messages
+from protocol.transport.runner import add_service_arguments, run_service
+from toptag.units import ms_from_ns, ns_from_s, s_from_ns
 
-log = logging.getLogger("toptag.monitor")
+log = logging.getLogger(__name__)
 TRUTH_KEEP_S = 30.0
 
 
@@ -46,8 +39,8 @@ class TruthTrack:
             return
         self.t.append(m.t_ns)
         self.xyyaw.append((m.x, m.y, m.yaw))
-        if (self.t[-1] - self.t[0]) * 1e-9 > 2 * TRUTH_KEEP_S:
-            cut = bisect.bisect_left(self.t, self.t[-1] - int(TRUTH_KEEP_S * 1e9))
+        if s_from_ns(self.t[-1] - self.t[0]) > 2 * TRUTH_KEEP_S:
+            cut = bisect.bisect_left(self.t, self.t[-1] - ns_from_s(TRUTH_KEEP_S))
             del self.t[:cut], self.xyyaw[:cut]
 
     def at(self, t_ns: int) -> tuple[float, float, float] | None:
@@ -55,7 +48,7 @@ class TruthTrack:
         if i == 0 or i == len(self.t):
             return self.xyyaw[0] if self.t and self.t[0] == t_ns else None
         t0, t1 = self.t[i - 1], self.t[i]
-        if (t1 - t0) * 1e-9 > 0.5:  # the bus was away: no truth in between
+        if s_from_ns(t1 - t0) > 0.5:  # the bus was away: no truth in between
             return None
         w = (t_ns - t0) / (t1 - t0)
         (x0, y0, a0), (x1, y1, a1) = self.xyyaw[i - 1], self.xyyaw[i]
@@ -123,9 +116,9 @@ class Monitor:
             n = m.frames_processed - (prev.frames_processed if prev and prev.started_ns == m.started_ns else 0)
             if m.detection_ns_mean is not None and n > 0:
                 acc = self.detect_ms.setdefault(m.rsu_id, [0.0, 0, 0.0])
-                acc[0] += m.detection_ns_mean * 1e-6 * n
+                acc[0] += ms_from_ns(m.detection_ns_mean) * n
                 acc[1] += n
-                acc[2] = max(acc[2], (m.detection_ns_max or 0) * 1e-6)
+                acc[2] = max(acc[2], ms_from_ns(m.detection_ns_max or 0))
             self.status[m.rsu_id] = m
 
     def _on_truth(self, m: GroundTruth) -> None:
@@ -138,11 +131,11 @@ class Monitor:
             b = self.buses[m.bus_id]
             b.fixes += 1
             b.fixes_by_rsu[m.rsu_id] += 1
-            b.latency_ms.add((arrival - m.capture_time_ns) * 1e-6)
-            b.rsu_ms.add((m.publish_time_ns - m.capture_time_ns) * 1e-6)
-            b.fix_transit_ms.add((arrival - m.publish_time_ns) * 1e-6)
+            b.latency_ms.add(ms_from_ns(arrival - m.capture_time_ns))
+            b.rsu_ms.add(ms_from_ns(m.publish_time_ns - m.capture_time_ns))
+            b.fix_transit_ms.add(ms_from_ns(arrival - m.publish_time_ns))
             if m.processing_ns is not None:
-                b.processing_ms.add(m.processing_ns * 1e-6)
+                b.processing_ms.add(ms_from_ns(m.processing_ns))
             b.pending_fixes.append((m.capture_time_ns, m.x, m.y))
 
     def _on_fused(self, m: FusedPose) -> None:
@@ -188,7 +181,7 @@ class Monitor:
                           "detect_ms_mean": (self.detect_ms[rid][0] / self.detect_ms[rid][1]
                                              if self.detect_ms.get(rid, [0, 0])[1] else None),
                           "detect_ms_max": self.detect_ms[rid][2] if rid in self.detect_ms else None,
-                          "detect_ms_last_s": None if s.detection_ns_mean is None else s.detection_ns_mean * 1e-6,
+                          "detect_ms_last_s": None if s.detection_ns_mean is None else ms_from_ns(s.detection_ns_mean),
                           "messages_rejected": s.messages_rejected}
                     for rid, s in sorted(self.status.items())}
             buses = {}
@@ -241,35 +234,37 @@ def write_report(path: str | Path, summary: dict) -> None:
     Path(path).write_text(json.dumps(summary, indent=1))
 
 
+class MonitorService:
+    """`toptag monitor`: a progress table every ``period`` s; the summary written to ``report`` at the end."""
+
+    def __init__(self, session, period: float, report: str | None):
+        self.monitor = Monitor(session)
+        self.period, self.report = period, report
+        self._stop = threading.Event()
+
+    def run(self, duration: float | None = None) -> None:
+        t_end = None if duration is None else time.monotonic() + duration
+        while not self._stop.wait(self.period) and (t_end is None or time.monotonic() < t_end):
+            print(self.monitor.progress(), flush=True)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        if self.report:
+            write_report(self.report, self.monitor.summary())
+        self.monitor.close()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag monitor", description=__doc__.split("\n\n")[0])
-    p.add_argument("--duration", type=float, default=None)
     p.add_argument("--period", type=float, default=2.0, help="seconds between progress tables")
     p.add_argument("--report", default=None, help="write the summary JSON here at the end")
-    add_zenoh_arguments(p)
+    add_service_arguments(p)
     return p
 
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    try:
-        session = open_session(zenoh_config_from_args(args))
-    except ZenohSetupError as e:
-        print(f"toptag monitor: {e}", file=sys.stderr)
-        return 1
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    monitor = Monitor(session)
-    t_end = None if args.duration is None else time.monotonic() + args.duration
-    try:
-        while not stop.wait(args.period) and (t_end is None or time.monotonic() < t_end):
-            print(monitor.progress(), flush=True)
-    finally:
-        summary = monitor.summary()
-        if args.report:
-            write_report(args.report, summary)
-        monitor.close()
-        session.close()
-    return 0
+    return run_service("monitor", args, lambda: None,
+                       lambda session, _: MonitorService(session, args.period, args.report), lambda _: "monitor")

@@ -15,86 +15,69 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import signal
 import sys
 import threading
 
 import zenoh
 
-from protocol.transport import (
-    ZenohSetupError,
-    add_zenoh_arguments,
-    config_summary,
-    open_session,
-    zenoh_config_from_args,
-)
+from protocol.transport import config_summary, zenoh_config_from_args
+from protocol.transport.runner import add_service_arguments, run_service
+from toptag.errors import InputError, SetupError
 
 DEFAULT_LISTEN = ("tcp/0.0.0.0:7447",)
 DEFAULT_SECURE_LISTEN = ("tls/0.0.0.0:7447",)
 ENV_SECURE = "TOPTAG_ZENOH_SECURE"
-log = logging.getLogger("toptag.router")
+log = logging.getLogger(__name__)
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag router", description=__doc__.split("\n\n")[0])
-    add_zenoh_arguments(p, default_mode="router")
+    add_service_arguments(p, default_mode="router", duration=False)
     p.add_argument("--secure", "--tls-dir", dest="secure", default=None, metavar="CERT_DIR",
                    help=f"mutual TLS and access control from a `toptag certs` directory (env {ENV_SECURE})")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return p
+
+
+class Router:
+    """The router's work is its session: it serves until stopped."""
+
+    def __init__(self, session: zenoh.Session, conf: zenoh.Config):
+        self._stop = threading.Event()
+        log.info("router listening on %s (zid %s, %s)", ", ".join(_listen_endpoints(conf)) or "(nothing)",
+                 session.zid(), config_summary(conf))
+
+    def run(self, duration: float | None = None) -> None:
+        self._stop.wait(duration)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if not logging.getLogger().handlers:
-        logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    else:
-        logging.getLogger().setLevel(args.log_level)
-    if args.zenoh_mode not in (None, "router"):
-        log.error("the router runs in zenoh mode 'router', not %r", args.zenoh_mode)
-        return 2
-
-    stop = threading.Event()
-
-    def on_signal(signum, _frame):
-        log.info("received %s, stopping", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {}
-    in_main_thread = threading.current_thread() is threading.main_thread()
-    if in_main_thread:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, on_signal)
     secure = args.secure or os.environ.get(ENV_SECURE) or None
-    try:
-        try:
-            conf = zenoh_config_from_args(args, mode="router",
-                                          default_listen=DEFAULT_SECURE_LISTEN if secure else DEFAULT_LISTEN)
-            if secure:
-                from services.security import SecurityError, secure_router_config
-                try:
-                    certs = secure_router_config(conf, secure)
-                except SecurityError as e:
-                    raise ZenohSetupError(f"--secure {secure}: {e}") from None
-                log.info("mutual TLS with CA %s; access control for %d identities", certs.ca_cert,
-                         len(certs.identities))
-            zenoh.try_init_log_from_env()
-            session = open_session(conf)
-        except ZenohSetupError as e:
-            log.error("%s", e)
-            return 1
-        try:
-            log.info("router listening on %s (zid %s, %s)", ", ".join(_listen_endpoints(conf)) or "(nothing)",
-                     session.zid(), config_summary(conf))
-            while not stop.wait(0.5):
-                pass
-        finally:
-            session.close()
-            log.info("router stopped")
-        return 0
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+
+    def load() -> zenoh.Config:
+        if args.zenoh_mode not in (None, "router"):
+            raise InputError(f"the router runs in zenoh mode 'router', not {args.zenoh_mode!r}")
+        conf = zenoh_config_from_args(args, mode="router",
+                                      default_listen=DEFAULT_SECURE_LISTEN if secure else DEFAULT_LISTEN)
+        if secure:
+            from services.security import SecurityError, secure_router_config
+            try:
+                certs = secure_router_config(conf, secure)
+            except SecurityError as e:
+                raise SetupError(f"--secure {secure}: {e}") from None
+            log.info("mutual TLS with CA %s; access control for %d identities", certs.ca_cert,
+                     len(certs.identities))
+        zenoh.try_init_log_from_env()
+        return conf
+
+    return run_service("router", args, load, Router, lambda _conf: "router" + (" (secure)" if secure else ""),
+                       zenoh_config=lambda _args, conf: conf)
 
 
 def _listen_endpoints(conf) -> list[str]:

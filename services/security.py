@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from protocol import keys
+from toptag.errors import InputError, report
 
 ROLES = ("router", "rsu", "bus", "sim", "monitor")
 MANIFEST = "toptag-certs.json"
@@ -64,8 +65,8 @@ ENV_OPENSSL = "TOPTAG_OPENSSL"
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 
 
-class SecurityError(RuntimeError):
-    """Certificates or a secured config cannot be made. str(e) is one line."""
+class SecurityError(InputError):
+    """Certificates or a secured config cannot be made from what was given. str(e) is one line."""
 
 
 # ---- identities -------------------------------------------------------------------------------
@@ -574,8 +575,7 @@ def main(argv: list[str] | None = None) -> int:
         cs = generate_certs(args.out, args.router, router_hosts=args.router_host, rsus=args.rsu, buses=args.bus,
                             sims=args.sim, monitors=args.monitor, days=args.days, openssl=args.openssl, log=say)
     except SecurityError as e:
-        print(f"toptag certs: {e}", file=sys.stderr)
-        return 2
+        return report("certs", e)
     say(f"wrote {cs.dir / MANIFEST}; start the router with: toptag router --secure {cs.dir}")
     return 0
 

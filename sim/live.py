@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 import time
@@ -37,19 +36,14 @@ import numpy as np
 
 from protocol import keys
 from protocol.messages import Frame, GnssFix, GroundTruth, Imu
-from protocol.transport import (
-    MessagePublisher,
-    ZenohSetupError,
-    add_zenoh_arguments,
-    config_summary,
-    open_session,
-    zenoh_config_from_args,
-)
+from protocol.transport import MessagePublisher
+from protocol.transport.runner import add_service_arguments, run_service
 from sim.scenario import bundled_scenario_path, load_scenario
-from sim.world import NS, World
+from sim.world import World
 from toptag.inputs import InputError
+from toptag.units import NS_PER_S, ms_from_ns
 
-log = logging.getLogger("toptag.sim")
+log = logging.getLogger(__name__)
 
 PROGRESS_S = 5.0
 MAX_LATE_S = 0.05  # a tick rendered later than min(half a period, this) is skipped
@@ -61,8 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scenario file (default: the bundled demo, toptag/data/demo/scenario.json)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S seconds of simulated (= wall-clock) time; default: run until signalled")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    add_zenoh_arguments(p, default_mode="peer")
+    add_service_arguments(p, duration=False)
     return p
 
 
@@ -91,7 +84,7 @@ class SensorLoop(threading.Thread):
 
     def run(self) -> None:
         w = self.world
-        step = NS / w.scenario.imu_hz
+        step = NS_PER_S / w.scenario.imu_hz
         last = w.t0_ns - 1
         try:
             while not self.stop_event.is_set():
@@ -100,7 +93,7 @@ class SensorLoop(threading.Thread):
                 last = now
                 k = int(np.floor((now - w.t0_ns) / step)) + 1
                 wake = w.t0_ns + int(round(k * step))
-                self.stop_event.wait(max(0.0, (wake - time.time_ns()) / NS) + 2e-4)
+                self.stop_event.wait(max(0.0, (wake - time.time_ns()) / NS_PER_S) + 2e-4)
         except BaseException as e:  # noqa: BLE001 - reported by the main loop
             self.error = e
             log.exception("sensor loop failed")
@@ -150,7 +143,7 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
     pubs = _Publishers(session, world)
     world.start(time.time_ns())
     t0 = world.t0_ns
-    end = t0 + int(duration_s * NS) if duration_s is not None else None
+    end = t0 + int(duration_s * NS_PER_S) if duration_s is not None else None
     n = len(world.rsu_ids)
     next_k = [0] * n
     stats = FrameStats(world.rsu_ids)
@@ -158,7 +151,7 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
     sensors.start()
     log.info("sim running: t0_ns=%d, %d RSUs at %s fps, buses %s, %s%s", t0, n,
              "/".join(f"{f:g}" for f in world.fps), ", ".join(world.bus_ids) or "(none)",
-             f"loop every {world.period_ns / NS:.1f} s" if world.period_ns else "no loop",
+             f"loop every {world.period_ns / NS_PER_S:.1f} s" if world.period_ns else "no loop",
              f", for {duration_s:g} s" if duration_s is not None else "")
     last_progress, since = time.monotonic(), dict(stats.published)
     try:
@@ -166,9 +159,9 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
             mono = time.monotonic()
             if mono - last_progress >= PROGRESS_S:
                 log.info("%s; imu %d truth %d gnss %d (imu delay max %.1f ms); on the road: %s",
-                         stats.line((time.time_ns() - t0) / NS, since, mono - last_progress),
+                         stats.line((time.time_ns() - t0) / NS_PER_S, since, mono - last_progress),
                          sensors.counts["imu"], sensors.counts["truth"], sensors.counts["gnss"],
-                         sensors.max_delay_ns / 1e6, ", ".join(world.truth_at(time.time_ns())) or "nobody")
+                         ms_from_ns(sensors.max_delay_ns), ", ".join(world.truth_at(time.time_ns())) or "nobody")
                 sensors.max_delay_ns = 0
                 stats.all_render_ms.extend(stats.render_ms)
                 stats.render_ms = []
@@ -180,12 +173,12 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
             r = int(np.argmin(ticks))
             t = ticks[r]
             if end is not None and t >= end:
-                stop.wait((end - now) / NS)
+                stop.wait((end - now) / NS_PER_S)
                 break
             if t > now:
-                stop.wait((t - now) / NS)
+                stop.wait((t - now) / NS_PER_S)
                 continue
-            late_limit = min(0.5 * NS / world.fps[r], MAX_LATE_S * NS)
+            late_limit = min(0.5 * NS_PER_S / world.fps[r], MAX_LATE_S * NS_PER_S)
             if now - t > late_limit:
                 k = world.frame_index_from(r, now - int(late_limit) + 1)
                 stats.skipped[world.rsu_ids[r]] += k - next_k[r]
@@ -205,7 +198,7 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
         stats.all_render_ms.extend(stats.render_ms)
         ms = np.asarray(stats.all_render_ms) if stats.all_render_ms else np.zeros(1)
         log.info("sim stopped after %.1f s: frames %s; skipped %d; render+encode p50 %.1f ms p90 %.1f ms; "
-                 "imu %d truth %d gnss %d", (time.time_ns() - t0) / NS,
+                 "imu %d truth %d gnss %d", (time.time_ns() - t0) / NS_PER_S,
                  ", ".join(f"{r} {k}" for r, k in stats.published.items()), sum(stats.skipped.values()),
                  np.percentile(ms, 50), np.percentile(ms, 90), sensors.counts["imu"], sensors.counts["truth"],
                  sensors.counts["gnss"])
@@ -215,59 +208,41 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
     return stats
 
 
+class LiveSimulator:
+    """`toptag sim run` as a service: the real-time loop on one session until stopped."""
+
+    def __init__(self, world: World, session):
+        self.world, self.session = world, session
+        self._stop = threading.Event()
+
+    def run(self, duration: float | None = None) -> None:
+        run(self.world, self.session, self._stop, duration)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        self._stop.set()
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.duration is not None and not args.duration > 0:
-        print("toptag sim run: --duration must be positive", file=sys.stderr)
-        return 2
     path = args.scenario or bundled_scenario_path()
-    try:
+
+    def load() -> World:
+        if args.duration is not None and not args.duration > 0:
+            raise InputError("--duration must be positive")
         world = World(load_scenario(path))
-    except InputError as e:
-        print(f"toptag sim run: {e}", file=sys.stderr)
-        return 2
-    if not logging.getLogger().handlers:
-        logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    else:
-        logging.getLogger().setLevel(args.log_level)
-    cv2.setNumThreads(1)
-
-    stop = threading.Event()
-
-    def on_signal(signum, _frame):
-        log.info("received %s, stopping", signal.Signals(signum).name)
-        stop.set()
-
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, on_signal)
-    try:
+        cv2.setNumThreads(1)
         c0 = time.perf_counter()
         world.warm_up()
         log.info("scenario %s: %d RSUs, %d buses, %d trucks; camera caches built in %.2f s; image model: %s",
                  path, len(world.cameras), len(world.buses), len(world.trucks), time.perf_counter() - c0,
                  world.model.describe())
-        if stop.is_set():
-            return 0
-        try:
-            conf = zenoh_config_from_args(args)
-            session = open_session(conf)
-        except ZenohSetupError as e:
-            log.error("%s", e)
-            return 1
-        try:
-            log.info("zenoh session open (%s)", config_summary(conf))
-            run(world, session, stop, args.duration)
-        except RuntimeError as e:
-            log.error("%s", e)
-            return 1
-        finally:
-            session.close()
-        return 0
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        return world
+
+    return run_service("sim run", args, load, lambda session, world: LiveSimulator(world, session),
+                       lambda world: f"simulator ({len(world.cameras)} RSUs, {len(world.buses)} buses)")
 
 
 if __name__ == "__main__":

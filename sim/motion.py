@@ -28,8 +28,9 @@ import numpy as np
 
 from sim.scene import LANE_WIDTH, ROAD_HALF_WIDTH
 from toptag.geometry import wrap_angle
+from toptag.limits import BUS_MAX_SPEED_MPS
+from toptag.units import NS_PER_S, s_from_ns
 
-MAX_SPEED = 30.0 / 3.6  # 8.33 m/s
 INNER_LANE = LANE_WIDTH / 2  # lateral offset of the inner lane centre from the road centre line
 OUTER_LANE = 1.5 * LANE_WIDTH
 STOP_LINE = ROAD_HALF_WIDTH + 2.0  # distance from the intersection centre of the stop line
@@ -232,7 +233,7 @@ class SpeedProfile:
     """Speed against time: starts at `v0`, then each phase (duration_s, v_end) blends to v_end with
     a raised cosine. Constant before t = 0 and after the last phase."""
 
-    def __init__(self, v0: float, phases: list[tuple[float, float]] = (), max_speed: float = MAX_SPEED):
+    def __init__(self, v0: float, phases: list[tuple[float, float]] = (), max_speed: float = BUS_MAX_SPEED_MPS):
         self.v0 = float(v0)
         self.phases = [(float(d), float(v)) for d, v in phases]
         speeds = [self.v0] + [v for _, v in self.phases]
@@ -386,18 +387,18 @@ class Trajectory:
 
     def t_ns(self, t) -> np.ndarray | int:
         t = np.asarray(t, dtype=float)
-        out = self.t0_ns + np.round(t * 1e9).astype(np.int64)
+        out = self.t0_ns + np.round(t * NS_PER_S).astype(np.int64)
         return int(out) if out.ndim == 0 else out
 
     def seconds(self, t_ns) -> np.ndarray | float:
-        d = (np.asarray(t_ns, dtype=np.int64) - self.t0_ns) * 1e-9
+        d = s_from_ns(np.asarray(t_ns, dtype=np.int64) - self.t0_ns)
         return float(d) if np.ndim(d) == 0 else d
 
     def state_at_ns(self, t_ns) -> TruthState:
         return self.state_at(self.seconds(t_ns))
 
 
-def bus_trajectory(kind: str = "left", approach: str = "w", speed: float = MAX_SPEED,
+def bus_trajectory(kind: str = "left", approach: str = "w", speed: float = BUS_MAX_SPEED_MPS,
                    stop: bool | None = None, stop_wait_s: float = 3.0, decel_s: float = 6.0,
                    accel_s: float = 7.0, turn_speed: float | None = None, bounce_amplitude: float = 0.10,
                    seed: int = 0, t0_ns: int = DEFAULT_T0_NS, **path_kw) -> Trajectory:

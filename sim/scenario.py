@@ -37,8 +37,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from sim.image_model import ImageModel
-from sim.motion import MAX_SPEED, STOP_LINE, ImuModel, Trajectory, bus_trajectory
+from sim.motion import STOP_LINE, ImuModel, Trajectory, bus_trajectory
 from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.limits import BUS_MAX_SPEED_MPS
 
 SCENARIO_FILE = "scenario.json"
 _IMU_DEFAULTS = ImuModel()
@@ -61,10 +62,10 @@ class Leg(BaseModel):
     route: Literal["straight", "left", "right", "stop"]
     approach: Literal["w", "s", "e", "n"] = Field(description="side the vehicle comes from")
     start_s: float = Field(ge=0, description="start, seconds after the scenario (or loop repeat) start")
-    speed: float = Field(default=7.0, gt=0, le=MAX_SPEED, description="cruise speed, m/s; default 7")
+    speed: float = Field(default=7.0, gt=0, le=BUS_MAX_SPEED_MPS, description="cruise speed, m/s; default 7")
     stop: bool | None = Field(default=None, description="stop at the stop line (default: route == 'stop')")
     stop_wait_s: float = Field(default=3.0, ge=0, description="standstill at the stop line, s; default 3")
-    turn_speed: float | None = Field(default=None, gt=0, le=MAX_SPEED,
+    turn_speed: float | None = Field(default=None, gt=0, le=BUS_MAX_SPEED_MPS,
                                      description="slow to this speed for a left/right turn, m/s")
     start_dist: float = Field(default=55.0, gt=STOP_LINE, le=500,
                               description="appears this far before the centre, m; default 55")

@@ -40,9 +40,9 @@ from sim.scenario import BusEntry, Leg, Scenario, TruckEntry, leg_seed
 from toptag.camera import Camera
 from toptag.inputs import InputError
 from toptag.site import MapFile
+from toptag.units import NS_PER_S, ns_from_s, s_from_ns
 from toptag.vehicle import Vehicle
 
-NS = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -138,7 +138,7 @@ class _ImuSensor:
     def measure(self, t_ns: np.ndarray, yaw_rate, accel_long, accel_lat, speed):
         m, rng, n = self.m, self.rng, len(t_ns)
         prev = np.concatenate([[t_ns[0] if self.last_ns is None else self.last_ns], t_ns[:-1]])
-        dt = np.maximum(t_ns - prev, 0) * 1e-9
+        dt = s_from_ns(np.maximum(t_ns - prev, 0))
         walk = rng.normal(0.0, 1.0, n) * m.gyro_bias_walk * np.sqrt(dt) if m.gyro_bias_walk > 0 else np.zeros(n)
         bias = self.bias + np.cumsum(walk)
         self.bias = float(bias[-1])
@@ -209,7 +209,7 @@ class World:
         self.buses = [x for x in self.actors if x.kind == "bus"]
         self.trucks = [x for x in self.actors if x.kind == "truck"]
         self.legs_end_ns = max((lr.end_ns for x in self.actors for lr in x.legs), default=0)
-        self.period_ns: int | None = (self.legs_end_ns + int(round(sc.loop_gap_s * NS))) if sc.loop else None
+        self.period_ns: int | None = (self.legs_end_ns + ns_from_s(sc.loop_gap_s)) if sc.loop else None
         self.t0_ns = 0
         self._reset_sensors()
 
@@ -218,8 +218,8 @@ class World:
         for i, leg in enumerate(entry.legs):
             kw = leg.trajectory_kwargs(leg_seed(self.scenario.seed, group, index, i), bounce)
             traj = bus_trajectory(t0_ns=0, **kw)
-            actor.legs.append(LegRun(aid, i, leg, kw, traj, int(round(leg.start_s * NS)),
-                                     int(math.floor(traj.duration * NS))))
+            actor.legs.append(LegRun(aid, i, leg, kw, traj, ns_from_s(leg.start_s),
+                                     int(math.floor(traj.duration * NS_PER_S))))
         actor.legs.sort(key=lambda lr: lr.start_ns)
         return actor
 
@@ -272,7 +272,7 @@ class World:
 
     def grid(self, rate_hz: float, t_from_ns: int, t_to_ns: int) -> np.ndarray:
         """Times t0 + round(k * 1e9 / rate) (k >= 0) in (t_from, t_to], int64."""
-        step = NS / rate_hz
+        step = NS_PER_S / rate_hz
         k0 = max(0, int(math.floor((t_from_ns - self.t0_ns) / step)) - 1)
         k1 = int(math.floor((t_to_ns - self.t0_ns) / step)) + 1
         if k1 < k0:
@@ -283,13 +283,13 @@ class World:
     def frame_time(self, rsu: int | str, k: int) -> int:
         """Capture time of frame k of an RSU: RSUs are staggered by 1/n of their period."""
         r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
-        step = NS / self.fps[r]
+        step = NS_PER_S / self.fps[r]
         return self.t0_ns + int(round(r / len(self.cameras) * step)) + int(round(k * step))
 
     def frame_index_from(self, rsu: int | str, t_ns: int) -> int:
         """The first frame index whose capture time is >= t_ns."""
         r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
-        k = max(0, int(math.floor((t_ns - self.frame_time(r, 0)) * self.fps[r] / NS)))
+        k = max(0, int(math.floor((t_ns - self.frame_time(r, 0)) * self.fps[r] / NS_PER_S)))
         while self.frame_time(r, k) < t_ns:
             k += 1
         while k > 0 and self.frame_time(r, k - 1) >= t_ns:
@@ -317,7 +317,7 @@ class World:
             m = (rel >= 0) & (within >= lr.start_ns) & (within <= lr.end_ns) & ~present
             if not m.any():
                 continue
-            st = lr.trajectory.state_at((within[m] - lr.start_ns) * 1e-9)
+            st = lr.trajectory.state_at(s_from_ns(within[m] - lr.start_ns))
             for k in names:
                 out[k][m] = np.atleast_1d(getattr(st, k))
             present |= m
@@ -446,8 +446,8 @@ class World:
         at which two vehicles get too close: conservative = sim.sampling.footprints_overlap (bounding
         circles + clearance), else the exact rectangles grown by `clearance`."""
         t0 = self.t0_ns
-        n = int(math.ceil(self.legs_end_ns / (step_s * NS))) + 1
-        t = t0 + np.round(np.arange(n) * step_s * NS).astype(np.int64)
+        n = int(math.ceil(self.legs_end_ns / (step_s * NS_PER_S))) + 1
+        t = t0 + np.round(np.arange(n) * step_s * NS_PER_S).astype(np.int64)
         boxes = {}
         for a in self.actors:
             present, _, _, s = self._states(a, t)
@@ -465,7 +465,7 @@ class World:
                     B = _Box(sb["x"][k], sb["y"][k], sb["yaw"][k], Lb, Wb)
                     hit = footprints_overlap(A, B, clearance) if conservative else boxes_overlap(A, B, clearance)
                     if hit:
-                        out.append(((t[k] - t0) / NS, ids[i], ids[j]))
+                        out.append(((t[k] - t0) / NS_PER_S, ids[i], ids[j]))
         return out
 
 

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tiers import pytest_collection_modifyitems  # noqa: F401  (the hook: one tier per test)
+
 from services.processes import free_port as _free_port
 from services.processes import stop_process
 from toptag.waiting import wait_until
@@ -52,7 +54,7 @@ def peer_pair(zenoh_session, free_port):
     ep = f"tcp/127.0.0.1:{free_port()}"
     a = zenoh_session("peer", listen=[ep])
     b = zenoh_session("peer", connect=[ep])
-    assert wait_until(lambda: len(b.info.peers_zid()) > 0, 5), "peers did not connect"
+    assert wait_until(lambda: len(b.info.peers_zid()) > 0, 60), "peers did not connect"
     return a, b
 
 
@@ -77,7 +79,7 @@ class Launched:
         except FileNotFoundError:
             return ""
 
-    def wait_for(self, text: str, timeout: float = 15.0) -> bool:
+    def wait_for(self, text: str, timeout: float = 60.0) -> bool:
         """Wait until ``text`` appears in the process's combined stdout/stderr (False if it exits or
         the timeout passes first)."""
         def seen():
@@ -85,19 +87,19 @@ class Launched:
         wait_until(seen, timeout, 0.02)
         return text in self.output()
 
-    def stop(self, sig=signal.SIGTERM, timeout: float = 5.0) -> int:
+    def stop(self, sig=signal.SIGTERM, timeout: float = 20.0) -> int:
         """Send ``sig`` to this PID, wait; SIGKILL if it does not exit. Returns the exit code."""
         return stop_process(self.proc, sig, timeout)
 
 
 @pytest.fixture
 def launch(tmp_path):
-    """launch(args, env=None, ready=None, timeout=15) -> Launched. ``args`` follow sys.executable
+    """launch(args, env=None, ready=None, timeout=60) -> Launched. ``args`` follow sys.executable
     (e.g. ["-m", "services.router", ...]). If ``ready`` is given, wait for that text in the output.
     Every launched process is stopped by PID at teardown (SIGTERM, then SIGKILL)."""
     started: list[Launched] = []
 
-    def start(args, env: dict | None = None, ready: str | None = None, timeout: float = 15.0) -> Launched:
+    def start(args, env: dict | None = None, ready: str | None = None, timeout: float = 60.0) -> Launched:
         log_path = tmp_path / f"proc-{len(started)}.log"
         with open(log_path, "wb") as out:
             proc = subprocess.Popen([sys.executable, *args], cwd=REPO, env=clean_env(env), stdout=out,

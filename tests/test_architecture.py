@@ -16,6 +16,8 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("toptag", "protocol", "sim", "services")
 RANK = {name: i for i, name in enumerate(LAYERS)}
 
+pytestmark = pytest.mark.unit
+
 # Plain functions and small classes: no network, no processes, no Zenoh, no wire contract.
 PURE = ["toptag/camera.py", "toptag/vehicle.py", "toptag/geometry.py", "toptag/detection.py",
         "toptag/solvers", "toptag/rsu", "toptag/fusion", "sim/render.py", "sim/motion.py", "sim/world.py",

@@ -26,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.system
+
 REPO = Path(__file__).resolve().parents[1]
 DOCKER = REPO / "docker"
 SERVICES = {"router", "sim", "rsu-sw", "rsu-se", "rsu-ne", "rsu-nw", "bus-17", "bus-42", "monitor"}

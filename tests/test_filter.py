@@ -9,8 +9,12 @@ from scipy.stats import chi2
 
 from sim.motion import ImuModel, bus_trajectory
 from sim.scene import rsu_mounts
-from toptag.fusion.filter import BusFilter, FilterConfig, FusedPose
-from toptag.fusion.fixes import FixOutcome, PoseFix
+from toptag.fix import Fix
+from toptag.fusion.filter import BusFilter, FilterConfig
+from toptag.fusion.outcomes import FixOutcome
+from toptag.fusion.state import FusedState
+
+pytestmark = pytest.mark.unit
 
 MS = 1_000_000
 RSUS = {m.id: m.position[:2] for m in rsu_mounts()}
@@ -36,7 +40,7 @@ def make_fixes(traj, rng, rsus=("rsu-sw", "rsu-se", "rsu-ne"), rate_hz=10.0, t_f
             if skip is not None and skip[0] <= ti < skip[1]:
                 continue
             n = L @ rng.standard_normal(3)
-            out.append(PoseFix(traj.t_ns(ti), st.x[i] + n[0], st.y[i] + n[1], _wrap(st.yaw[i] + n[2]), C, rid, i))
+            out.append(Fix(traj.t_ns(ti), st.x[i] + n[0], st.y[i] + n[1], _wrap(st.yaw[i] + n[2]), C, rid, i))
     out.sort(key=lambda f: (f.t_ns, f.source))
     return out
 
@@ -59,12 +63,12 @@ def drive(flt, imu, arrivals, outputs_every=2, on_output=None):
     return got
 
 
-def pos_err(est: FusedPose, traj):
+def pos_err(est: FusedState, traj):
     st = traj.state_at_ns(est.t_ns)
     return math.hypot(est.x - st.x, est.y - st.y)
 
 
-def nees(est: FusedPose, traj):
+def nees(est: FusedState, traj):
     st = traj.state_at_ns(est.t_ns)
     e = np.array([est.x - st.x, est.y - st.y, _wrap(est.yaw - st.yaw)])
     return float(e @ np.linalg.solve(est.cov, e))
@@ -208,7 +212,7 @@ def test_wild_fix_still_rejected_after_a_long_run_of_rejections():
         st = traj.state_at(t)
         for src in ("rsu-a", "rsu-b"):
             r, phi = rng.uniform(3.0, 10.0), rng.uniform(0, 2 * np.pi)
-            wild.append(PoseFix(traj.t_ns(t + 0.013 * (src == "rsu-b")), st.x + r * np.cos(phi),
+            wild.append(Fix(traj.t_ns(t + 0.013 * (src == "rsu-b")), st.x + r * np.cos(phi),
                                 st.y + r * np.sin(phi), st.yaw + rng.normal(0, 0.3),
                                 np.diag([0.04 ** 2, 0.04 ** 2, 0.003 ** 2]), src, seq))
             seq += 1
@@ -224,7 +228,7 @@ def test_wild_fix_still_rejected_after_a_long_run_of_rejections():
     assert err < 3 * est.health.pos_sigma_m  # the covariance covers the dead-reckoning drift
     t5 = est.t_ns - 50 * MS
     s5 = traj.state_at_ns(t5)
-    five = PoseFix(t5, s5.x, s5.y + 5.0, s5.yaw, np.diag([0.04 ** 2, 0.04 ** 2, 0.003 ** 2]), "rsu-c", 1)
+    five = Fix(t5, s5.x, s5.y + 5.0, s5.yaw, np.diag([0.04 ** 2, 0.04 ** 2, 0.003 ** 2]), "rsu-c", 1)
     S_uncapped = est.cov + five.cov
     nu = np.array([0.0, 5.0, 0.0])
     assert nu @ np.linalg.solve(S_uncapped, nu) < cfg.gate_threshold  # what the cap protects against
@@ -302,7 +306,7 @@ def test_startup_from_coarse_prior_ignores_a_lone_spoof(left_turn):
     f.initialize(rows[k0][0], st.x + 2.0, st.y - 1.5, st.yaw + 0.2, pos_sigma=4.0, yaw_sigma=0.5)
     assert f.estimate().health.status == "acquiring"
     s1 = traj.state_at_ns(fixes[0].t_ns - 5 * MS)
-    spoof = PoseFix(fixes[0].t_ns - 5 * MS, s1.x - 4.0, s1.y + 3.0, s1.yaw, fixes[0].cov, "rsu-evil", 0)
+    spoof = Fix(fixes[0].t_ns - 5 * MS, s1.x - 4.0, s1.y + 3.0, s1.yaw, fixes[0].cov, "rsu-evil", 0)
     out = drive(f, imu, [(spoof.t_ns + 100 * MS, spoof)] + [(x.t_ns + 100 * MS, x) for x in fixes])
     assert out[(spoof.t_ns, "rsu-evil", 0)] is FixOutcome.UNCONFIRMED
     assert f.fix_outcomes()[0][1] is not FixOutcome.ACCEPTED or f.fix_outcomes()[0][0][1] != "rsu-evil"
@@ -351,23 +355,26 @@ def test_estimate_inside_the_buffer_and_health_fields(left_turn):
         f.estimate(f.buffer_start_ns - 1)
 
 
-def test_fixes_without_sequence_numbers_and_from_wire_dicts(left_turn):
+def test_fixes_without_sequence_numbers(left_turn):
     traj, imu = left_turn
-    fixes = make_fixes(traj, np.random.default_rng(16), t_to=4.0)
-    wire = [{"t_ns": f.t_ns, "x": f.x, "y": f.y, "yaw": f.yaw, "cov": f.cov.tolist(), "rsu_id": f.source}
-            for f in fixes]
+    fixes = [f.replace(seq=None) for f in make_fixes(traj, np.random.default_rng(16), t_to=4.0)]
     flt = BusFilter()
     rows = [r for r in imu.rows() if r[0] <= traj.t_ns(4.2)]
     j = 0
     for r in rows:
-        while j < len(wire) and wire[j]["t_ns"] + 100 * MS < r[0]:
-            flt.add_fix(wire[j], arrival_ns=wire[j]["t_ns"] + 100 * MS)
+        while j < len(fixes) and fixes[j].t_ns + 100 * MS < r[0]:
+            flt.add_fix(fixes[j], arrival_ns=fixes[j].t_ns + 100 * MS)
             j += 1
         flt.add_imu(*r)
     c = flt.counters()
     assert c["duplicate"] == 0 and c["accepted"] + c["initialized"] == j
-    assert flt.add_fix(dict(wire[j - 1])) is FixOutcome.DUPLICATE  # same source, same capture time
+    assert flt.add_fix(fixes[j - 1].replace()) is FixOutcome.DUPLICATE  # same source, same capture time
     assert set(c["per_source"]) == {"rsu-sw", "rsu-se", "rsu-ne"} & set(c["per_source"])
+
+
+def test_the_filter_takes_only_core_fixes():
+    with pytest.raises(TypeError, match="toptag.fix.Fix"):
+        BusFilter().add_fix({"t_ns": 1, "x": 0.0, "y": 0.0, "yaw": 0.0, "cov": np.eye(3).tolist()})
 
 
 def test_fusion_study_writes_results_in_the_agreed_shape(tmp_path):
@@ -386,8 +393,10 @@ def test_fusion_study_writes_results_in_the_agreed_shape(tmp_path):
 
 
 def test_wire_messages_in_and_out(left_turn):
-    """The filter takes the protocol's PoseFix as is and its output fills the protocol's FusedPose."""
-    messages = pytest.importorskip("protocol.messages")
+    """Wire PoseFix -> protocol.convert -> filter -> protocol.convert -> wire FusedPose."""
+    from protocol import messages
+    from protocol.convert import fix_from_message, fix_to_message, fused_to_message
+
     traj, imu = left_turn
     fixes = make_fixes(traj, np.random.default_rng(17), t_to=3.0)
     flt = BusFilter()
@@ -395,16 +404,15 @@ def test_wire_messages_in_and_out(left_turn):
     j = applied = 0
     for r in rows:
         while j < len(fixes) and fixes[j].t_ns + 120 * MS < r[0]:
-            f = fixes[j]
-            msg = messages.PoseFix(bus_id="bus-17", rsu_id=f.source, intersection_id="x1", capture_time_ns=f.t_ns,
-                                   publish_time_ns=f.t_ns + 50 * MS, x=f.x, y=f.y, z=3.0, yaw=f.yaw,
-                                   covariance=f.cov.tolist(), method="s_opt", tags_used=[3], reprojection_rms_px=0.4,
-                                   frame_seq=f.seq)
-            applied += flt.add_fix(msg, arrival_ns=f.t_ns + 120 * MS).applied
+            f = fixes[j].replace(z=3.0, method="s_opt", tags=(3,), rms_px=0.4)
+            msg = fix_to_message(f, "bus-17", "x1", publish_time_ns=f.t_ns + 50 * MS)
+            assert isinstance(msg, messages.PoseFix) and msg.rsu_id == f.source and msg.frame_seq == f.seq
+            applied += flt.add_fix(fix_from_message(msg, arrival_ns=f.t_ns + 120 * MS)).applied
             j += 1
         flt.add_imu(*r)
     est = flt.estimate(rows[-1][0] + 5 * MS)
-    out = messages.FusedPose(bus_id="bus-17", **est.protocol_fields())
+    out = fused_to_message(est, "bus-17")
+    assert isinstance(out, messages.FusedPose) and out.bus_id == "bus-17" and out.t_ns == est.t_ns
     assert out.health.accepted_fixes == applied >= j - 2 and out.health.last_fix_delay_ns == 120 * MS
     assert out.health.last_fix_rsu in RSUS and 0 < out.health.since_last_fix_ns < 400 * MS
     assert pos_err(est, traj) < 0.05

@@ -3,6 +3,8 @@ import pytest
 
 from toptag.geometry import nearest_rotation, rodrigues, rotation_vector, wrap_angle
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.mark.parametrize("angle", [0.0, 1e-10, 1e-4, 0.7, np.pi / 2, 2.5, np.pi - 1e-4, np.pi - 1e-11])
 def test_rotation_vector_round_trips_over_the_whole_range(angle):

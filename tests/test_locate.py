@@ -9,6 +9,8 @@ import pytest
 
 from sim.examples import write_examples
 
+pytestmark = pytest.mark.integration
+
 TOPTAG = [sys.executable, "-c", "from toptag.cli import main; main()"]
 
 

@@ -9,6 +9,8 @@ from toptag.camera import Camera
 from toptag.inputs import InputError
 from toptag.vehicle import Vehicle
 
+pytestmark = pytest.mark.unit
+
 DIST = [-0.28, 0.09, 0.0007, -0.0004, -0.012]
 
 

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from sim.motion import (
-    MAX_SPEED,
     ImuModel,
     Path,
     RoofBounce,
@@ -18,6 +17,9 @@ from sim.motion import (
     turn_segments,
 )
 from sim.scene import LANE_WIDTH, ROAD_HALF_WIDTH
+from toptag.limits import BUS_MAX_SPEED_MPS
+
+pytestmark = pytest.mark.unit
 
 KINDS = ["straight", "left", "right", "stop"]
 APPROACHES = ["w", "s", "e", "n"]
@@ -38,7 +40,7 @@ def dense(traj, dt=DT):
 def test_speed_limit_and_smoothness(kind, approach):
     traj = bus_trajectory(kind, approach)
     t, st = dense(traj)
-    assert st.speed.max() <= MAX_SPEED + 1e-9 and st.speed.min() >= 0.0
+    assert st.speed.max() <= BUS_MAX_SPEED_MPS + 1e-9 and st.speed.min() >= 0.0
     # continuous heading, speed, yaw rate (curvature) and acceleration: small steps at 1 ms
     assert np.max(np.abs(st.yaw_rate)) < 1.2 and np.max(np.abs(st.accel_long)) < 2.5
     assert np.max(np.abs(_wrap(np.diff(st.yaw)))) <= 1.001 * np.max(np.abs(st.yaw_rate)) * DT + 1e-12
@@ -116,7 +118,7 @@ def test_turn_speed_slows_for_the_turn_only():
     t, st = dense(traj, 0.01)
     turning = np.abs(st.yaw_rate) > 1e-6
     assert np.allclose(st.speed[turning], 4.0)
-    assert st.speed[0] == pytest.approx(MAX_SPEED)
+    assert st.speed[0] == pytest.approx(BUS_MAX_SPEED_MPS)
     after = np.argmax(turning) + np.sum(turning)
     assert np.all(np.diff(st.speed[after:]) >= 0) and st.speed[-1] > 6.0  # speeding up again
     assert np.max(np.abs(st.accel_lat)) < 2.5
@@ -132,7 +134,7 @@ def test_stop_decelerates_waits_and_goes():
     i = np.argmax(stopped)
     # at rest just before the stop line of the south approach (heading north, y < -ROAD_HALF_WIDTH)
     assert -ROAD_HALF_WIDTH - 3.0 < st.y[i] < -ROAD_HALF_WIDTH
-    assert st.speed[0] == pytest.approx(MAX_SPEED) and st.speed[-1] == pytest.approx(MAX_SPEED)
+    assert st.speed[0] == pytest.approx(BUS_MAX_SPEED_MPS) and st.speed[-1] == pytest.approx(BUS_MAX_SPEED_MPS)
     assert np.max(np.abs(st.accel_long)) < 3.5  # comfortable for a bus
     # a stop also works on a turn
     tl = bus_trajectory("left", "w", stop=True)

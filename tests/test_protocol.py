@@ -27,6 +27,8 @@ from protocol import (
     keys,
 )
 
+pytestmark = pytest.mark.unit
+
 SAMPLES = make_samples()
 
 
@@ -290,3 +292,24 @@ def test_only_the_wildcard_chunk_is_allowed_as_pattern():
     assert keys.frame(keys.ANY) == "toptag/v1/frame/*"
     with pytest.raises(keys.KeyExprError):
         keys.frame("**")
+
+
+def test_core_fix_to_wire_and_back_keeps_every_field():
+    import numpy as np
+
+    from protocol.convert import fix_from_message, fix_to_message
+    from toptag.fix import Fix
+
+    cov = np.array([[4e-4, 1e-5, 0.0], [1e-5, 9e-4, 0.0], [0.0, 0.0, 1e-5]])
+    fix = Fix(t_ns=1_700_000_000_123_456_789, x=-5.5, y=3.25, yaw=2.5, cov=cov, source="rsu-sw", seq=41,
+              z=3.02, method="level", tags=(3, 7), rms_px=0.08)
+    msg = fix_to_message(fix, "bus-17", "x1", publish_time_ns=fix.t_ns + 9_000_000, processing_ns=7_000_000)
+    assert (msg.capture_time_ns, msg.rsu_id, msg.frame_seq, msg.tags_used) == (fix.t_ns, "rsu-sw", 41, [3, 7])
+    back = fix_from_message(decode(encode(msg), PoseFix), arrival_ns=fix.t_ns + 12_000_000)
+    assert back.arrival_ns == fix.t_ns + 12_000_000
+    assert back.replace(arrival_ns=None).__dict__.keys() == fix.__dict__.keys()
+    for name in ("t_ns", "x", "y", "yaw", "source", "seq", "z", "method", "tags", "rms_px"):
+        assert getattr(back, name) == getattr(fix, name), name
+    assert np.array_equal(back.cov, fix.cov)
+    with pytest.raises(ValueError, match="lacks method, tags, rms_px"):
+        fix_to_message(Fix(t_ns=1, x=0, y=0, yaw=0, cov=cov, source="rsu-sw", seq=1, z=3.0), "bus-17", "x1", 2)

@@ -15,6 +15,8 @@ from sim.render import Occluder, PlacedVehicle, render
 from sim.scene import bundled_vehicle, rsu_camera
 from toptag.detection import TagDetector, detect_vehicle_tags
 
+pytestmark = pytest.mark.unit
+
 TAGS = Path(__file__).resolve().parents[2] / "shared" / "tags"  # ../shared beside the clone
 BARREL = [-0.25, 0.08, 0.0, 0.0, 0.0]
 

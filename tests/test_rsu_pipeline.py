@@ -15,6 +15,8 @@ from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.rsu.regions import acquisition_bands, tag_extent_by_row
 from toptag.vehicle import Vehicle
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def bus_pass():
@@ -23,9 +25,14 @@ def bus_pass():
 
 def run(pipeline, vehicle_id, frames):
     out = []
-    for t_ns, img, truth, visible in frames:
-        res = pipeline.process(img, t_ns)
+    for seq, (t_ns, img, truth, visible) in enumerate(frames):
+        res = pipeline.process(img, t_ns, seq)
         sol = res.vehicles[vehicle_id].solution
+        fix = res.vehicles[vehicle_id].fix
+        assert (fix is not None) == (sol is not None and sol.ok)
+        if fix is not None:  # the solution as a fix of this camera, for this frame
+            assert (fix.t_ns, fix.source, fix.seq, fix.x, fix.yaw, fix.method) == \
+                (t_ns, pipeline.camera.id, seq, sol.x, sol.yaw, sol.method)
         err = np.hypot(sol.x - truth[0], sol.y - truth[1]) if sol is not None and sol.ok else None
         out.append((res, visible, err))
     return out

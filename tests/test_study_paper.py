@@ -22,6 +22,8 @@ from toptag.geometry import vehicle_to_world
 from toptag.solvers import SIGMA_H_DEFAULT, Limits, position_crlb, solve
 from toptag.solvers.level import edge_whitener
 
+pytestmark = pytest.mark.integration
+
 SAMPLES = 16  # one per whole-metre bin, 5..20 m
 
 

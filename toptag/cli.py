@@ -8,6 +8,8 @@ import importlib
 import os
 import sys
 
+from toptag.errors import ToptagError, report
+
 # command words -> "module:function"; each function takes argv (list[str]) and returns an exit code.
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
@@ -39,7 +41,10 @@ def dispatch(argv: list[str]) -> int:
         if words in COMMANDS:
             target = COMMANDS[words][0]
             module, func = target.split(":")
-            return int(getattr(importlib.import_module(module), func)(argv[n:]) or 0)
+            try:
+                return int(getattr(importlib.import_module(module), func)(argv[n:]) or 0)
+            except ToptagError as e:  # one line and the kind's exit code (toptag.errors), never a traceback
+                return report(" ".join(words), e)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(_usage())
         return 0

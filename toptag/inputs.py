@@ -6,9 +6,9 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from toptag.errors import InputError
 
-class InputError(ValueError):
-    """A user-supplied file, image or message is unusable. str(e) is one line naming the problem."""
+__all__ = ["InputError", "describe_validation_error", "read_json"]
 
 
 def describe_validation_error(e: ValidationError) -> str:

@@ -7,8 +7,8 @@ import sys
 
 from toptag.camera import Camera
 from toptag.detection import DetectorSettings
+from toptag.errors import InputError, report
 from toptag.images import read_gray
-from toptag.inputs import InputError
 from toptag.solvers import METHODS
 from toptag.vehicle import Vehicle
 
@@ -43,9 +43,10 @@ def main(argv: list[str]) -> int:
         settings = DetectorSettings(max_hamming=args.max_hamming, quad_decimate=args.quad_decimate,
                                     quad_sigma=args.quad_sigma, decode_sharpening=args.sharpening,
                                     nthreads=args.threads if args.search == "full" else 1)
-    except (InputError, ValueError) as e:
-        print(f"toptag locate: {e}", file=sys.stderr)
-        return 2
+    except InputError as e:
+        return report("locate", e)
+    except ValueError as e:
+        return report("locate", InputError(str(e)))
 
     from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 
@@ -60,9 +61,8 @@ def main(argv: list[str]) -> int:
         try:
             gray = read_gray(path, (camera.width, camera.height))
         except InputError as e:
-            print(f"toptag locate: {e}", file=sys.stderr)
+            code = report("locate", e)  # the other images are still answered
             print(json.dumps({"image": path, "ok": False, "error": str(e)}), flush=True)
-            code = 2
             continue
         found = pipeline.process(gray, 0).vehicles[vehicle.id].solution
         if found is None:

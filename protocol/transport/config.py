@@ -15,6 +15,8 @@ from typing import Any
 
 import zenoh
 
+from toptag.errors import SetupError
+
 MODES = ("peer", "client", "router")
 ENV_MODE = "TOPTAG_ZENOH_MODE"
 ENV_CONNECT = "TOPTAG_ZENOH_CONNECT"
@@ -23,7 +25,7 @@ ENV_CONFIG = "TOPTAG_ZENOH_CONFIG"
 ENV_MULTICAST = "TOPTAG_ZENOH_MULTICAST"
 
 
-class ZenohSetupError(RuntimeError):
+class ZenohSetupError(SetupError):
     """A zenoh config or session cannot be made. str(e) is one line."""
 
 

@@ -16,12 +16,12 @@ import time
 import numpy as np
 
 from protocol import keys
+from protocol.convert import fix_from_message, fused_to_message
 from protocol.messages import (
     Approach,
     ClockInfo,
     CoarsePosition,
     FusedPose,
-    FusionHealth,
     GnssFix,
     Imu,
     Leave,
@@ -35,14 +35,14 @@ from protocol.transport import (
     serve_session,
     subscribe_messages,
 )
-from services.runner import add_service_arguments, run_service
+from protocol.transport.runner import add_service_arguments, run_service
 from toptag.fusion.filter import BusFilter, FilterConfig
-from toptag.fusion.fixes import PoseFix as FilterFix
 from toptag.fusion.presence import IntersectionPresence
 from toptag.site import IntersectionSpec, MapFile
+from toptag.units import ms_from_ns, s_from_ns
 from toptag.vehicle import Vehicle
 
-log = logging.getLogger("toptag.bus")
+log = logging.getLogger(__name__)
 
 IMU_GAP_RESET_S = 1.0  # without IMU for this long the state cannot be propagated: start afresh
 APPROACH_REPEAT_S = 1.0  # one-shot messages can be lost when routes are new: repeat the announcement
@@ -82,11 +82,11 @@ class BusAgent:
     # ---- inputs (Zenoh threads) ---------------------------------------------------------------
     def _on_imu(self, m: Imu) -> None:
         with self._lock:
-            if self._last_imu_ns is not None and (m.t_ns - self._last_imu_ns) * 1e-9 > IMU_GAP_RESET_S:
+            if self._last_imu_ns is not None and s_from_ns(m.t_ns - self._last_imu_ns) > IMU_GAP_RESET_S:
                 # The vehicle was off (or the stream broke): nothing in the buffer describes it any more.
                 self.filter = BusFilter(self.filter_config)
                 self.filter_resets += 1
-                log.info("IMU gap of %.1f s: filter restarted", (m.t_ns - self._last_imu_ns) * 1e-9)
+                log.info("IMU gap of %.1f s: filter restarted", s_from_ns(m.t_ns - self._last_imu_ns))
             self._last_imu_ns = m.t_ns
             self.filter.add_imu(m.t_ns, m.gyro_z, m.accel_x, m.accel_y, m.wheel_speed)
 
@@ -101,7 +101,7 @@ class BusAgent:
         with self._lock:
             self.fixes_received += 1
             self.fix_latency_ns.append(now - m.capture_time_ns)
-            self.filter.add_fix(FilterFix.from_any(m), arrival_ns=now)
+            self.filter.add_fix(fix_from_message(m, arrival_ns=now))
 
     # ---- position and sessions ------------------------------------------------------------------
     def position(self, now_ns: int) -> CoarsePosition | None:
@@ -112,7 +112,7 @@ class BusAgent:
         if est is not None and est.health.status == "ok":
             sigma = float(np.sqrt(max(est.cov[0, 0], est.cov[1, 1], 1e-6)))
             return CoarsePosition(t_ns=now_ns, x=est.x, y=est.y, sigma_m=sigma, source="fused")
-        if gnss is not None and (now_ns - gnss.t_ns) * 1e-9 < 5.0:
+        if gnss is not None and s_from_ns(now_ns - gnss.t_ns) < 5.0:
             return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss")
         return None
 
@@ -165,8 +165,7 @@ class BusAgent:
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
         if est is not None:
-            f = est.protocol_fields()
-            self._fused_pub.put(FusedPose(bus_id=self.bus_id, **{**f, "health": FusionHealth(**f["health"])}))
+            self._fused_pub.put(fused_to_message(est, self.bus_id))
 
     def run(self, duration: float | None = None) -> None:
         t_end = None if duration is None else time.monotonic() + duration
@@ -191,7 +190,7 @@ class BusAgent:
         self._fused_pub.close()
 
     def latency_ms(self) -> dict:
-        lat = np.asarray(self.fix_latency_ns, dtype=float) * 1e-6
+        lat = ms_from_ns(np.asarray(self.fix_latency_ns, dtype=float))
         if lat.size == 0:
             return {}
         return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99))}

@@ -18,6 +18,7 @@ import numpy as np
 
 from protocol import keys
 from protocol.codec import ProtocolError
+from protocol.convert import fix_to_message
 from protocol.images import frame_to_gray
 from protocol.messages import Approach, Frame, Leave, PoseFix, RsuStatus
 from protocol.transport import (
@@ -29,13 +30,13 @@ from protocol.transport import (
     subscribe_messages,
     watch_buses,
 )
-from services.runner import add_service_arguments, run_service
+from protocol.transport.runner import add_service_arguments, run_service
 from toptag.camera import Camera
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.solvers import METHODS
 from toptag.vehicle import Vehicle
 
-log = logging.getLogger("toptag.rsu")
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -172,21 +173,15 @@ class RsuService:
             log.warning("dropped frame: %s", e)
             return
         t0 = time.perf_counter_ns()
-        result = self.pipeline.process(gray, frame.capture_time_ns)
+        result = self.pipeline.process(gray, frame.capture_time_ns, frame.seq)
         processing_ns = time.perf_counter_ns() - t0
         c.detect_ns.append(processing_ns)
         c.frames_processed += 1
         published = 0
         for bus, vr in result.vehicles.items():
-            sol = vr.solution
-            if sol is None or not sol.ok or bus not in self._fix_pubs:
+            if vr.fix is None or bus not in self._fix_pubs:
                 continue
-            fix = PoseFix(bus_id=bus, rsu_id=self.rsu_id, intersection_id=self.intersection,
-                          capture_time_ns=frame.capture_time_ns, publish_time_ns=time.time_ns(),
-                          x=sol.x, y=sol.y, z=sol.z, yaw=sol.yaw, covariance=np.asarray(sol.covariance).tolist(),
-                          method=sol.method, tags_used=[int(t) for t in sol.tags],
-                          reprojection_rms_px=float(sol.rms_px), frame_seq=frame.seq, processing_ns=processing_ns)
-            self._fix_pubs[bus].put(fix)
+            self._fix_pubs[bus].put(fix_to_message(vr.fix, bus, self.intersection, time.time_ns(), processing_ns))
             published += 1
         c.fixes_published += published
         c.frames_with_fix += bool(published)

@@ -31,8 +31,12 @@ import numpy as np
 
 from sim.motion import ImuModel, Trajectory, bus_trajectory
 from sim.scene import rsu_mounts
-from toptag.fusion.filter import BusFilter, FilterConfig, wrap
-from toptag.fusion.fixes import PoseFix
+from toptag.fix import Fix
+from toptag.errors import InputError, report
+from toptag.fusion.filter import BusFilter, FilterConfig
+from toptag.geometry import wrap_angle
+from toptag.limits import BUS_MAX_SPEED_MPS
+from toptag.units import kmh_from_mps, ns_from_ms, ns_from_s, s_from_ns
 
 DEFAULT_LATENCIES_MS = (0, 50, 100, 200, 300)
 
@@ -63,7 +67,7 @@ class FixErrorModel:
 
 
 def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.random.Generator,
-                   fix_source=None) -> list[PoseFix]:
+                   fix_source=None) -> list[Fix]:
     """Capture-stamped fixes from the first n_rsu corner RSUs (no arrival time yet)."""
     mounts = rsu_mounts()[:n_rsu]
     fixes = []
@@ -85,8 +89,8 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
             else:
                 C = model.covariance(bus, m.position[:2])
                 n = np.linalg.cholesky(C) @ rng.standard_normal(3)
-                pose = (st.x[i] + n[0], st.y[i] + n[1], wrap(st.yaw[i] + n[2]))
-            fixes.append(PoseFix(traj.t_ns(t[i]), pose[0], pose[1], pose[2], C, m.id, seq))
+                pose = (st.x[i] + n[0], st.y[i] + n[1], wrap_angle(st.yaw[i] + n[2]))
+            fixes.append(Fix(traj.t_ns(t[i]), pose[0], pose[1], pose[2], C, m.id, seq))
             seq += 1
     fixes.sort(key=lambda f: f.t_ns)
     return fixes
@@ -134,10 +138,10 @@ def _pose_array(ests) -> tuple[np.ndarray, np.ndarray]:
     return xs, covs
 
 
-def run_once(traj: Trajectory, imu, fixes: list[PoseFix], latency_ms: float, jitter_ms: float,
+def run_once(traj: Trajectory, imu, fixes: list[Fix], latency_ms: float, jitter_ms: float,
              rng: np.random.Generator, cfg: FilterConfig, dead: np.ndarray | None, out_hz: float = 50.0):
     delays = np.maximum(0.0, latency_ms + jitter_ms * rng.standard_normal(len(fixes)))
-    arrivals = sorted(((f.t_ns + int(round(d * 1e6)), f) for f, d in zip(fixes, delays)), key=lambda a: a[0])
+    arrivals = sorted(((f.t_ns + ns_from_ms(d), f) for f, d in zip(fixes, delays)), key=lambda a: a[0])
     naive_arr = [(a, f.replace(t_ns=a)) for a, f in arrivals]
     fused = BusFilter(cfg)
     naive = BusFilter(FilterConfig(**{**asdict(cfg), "gate_probability": None}))
@@ -178,7 +182,7 @@ def _rms(v):
 
 
 def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, seed: int = 0, runs: int = 16,
-        n_rsu: int = 4, route: str = "left", speed: float = 30 / 3.6, settle_s: float = 1.5,
+        n_rsu: int = 4, route: str = "left", speed: float = BUS_MAX_SPEED_MPS, settle_s: float = 1.5,
         imu_model: ImuModel | None = None, fix_model: FixErrorModel | None = None,
         config: FilterConfig | None = None, fix_source=None, plots: bool = True, log=print) -> dict:
     """The study. Returns the results dict also written to out_dir/results.json."""
@@ -259,8 +263,8 @@ def _json_default(o):
     return str(o)
 
 
-def _eval_mask(tr: RunTrace, fixes: list[PoseFix], t0_ns: int, settle_s: float) -> np.ndarray:
-    first = (fixes[0].t_ns - t0_ns) * 1e-9 if fixes else 0.0
+def _eval_mask(tr: RunTrace, fixes: list[Fix], t0_ns: int, settle_s: float) -> np.ndarray:
+    first = s_from_ns(fixes[0].t_ns - t0_ns) if fixes else 0.0
     return tr.t >= first + settle_s
 
 
@@ -281,7 +285,7 @@ def _summarise(traces: list[RunTrace], inputs, settle_s: float) -> dict:
     counters: dict[str, int] = {}
     delays = []
     for tr, (imu, fixes, _) in zip(traces, inputs):
-        t0_ns = int(imu.t_ns[0] - round(imu.t[0] * 1e9))
+        t0_ns = int(imu.t_ns[0]) - ns_from_s(imu.t[0])
         m = _eval_mask(tr, fixes, t0_ns, settle_s)
         ef, en, ed = (_errors(a, tr.truth)[m] for a in (tr.fused, tr.naive, tr.dead))
         fpos.append(np.hypot(ef[:, 0], ef[:, 1]))
@@ -342,7 +346,7 @@ def _plots(out: Path, traj: Trajectory, per_lat, results, settle_s, inputs) -> l
     ax.set_xlabel("mean fix latency [ms]")
     ax.set_ylabel("position RMS error [cm]")
     setup = results["setup"]
-    ax.set_title(f"{setup['route']} at {setup['speed_mps'] * 3.6:.0f} km/h, {setup['n_rsu']} RSUs x 10 Hz, "
+    ax.set_title(f"{setup['route']} at {kmh_from_mps(setup['speed_mps']):.0f} km/h, {setup['n_rsu']} RSUs x 10 Hz, "
                  f"jitter {setup['jitter_ms']:.0f} ms, {setup['runs']} runs", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
@@ -355,7 +359,7 @@ def _plots(out: Path, traj: Trajectory, per_lat, results, settle_s, inputs) -> l
     lat = 200.0 if 200.0 in per_lat else lats[-1]
     tr = per_lat[lat][0]
     imu0, fixes0, _ = inputs[0]
-    win = _eval_mask(tr, fixes0, int(imu0.t_ns[0] - round(imu0.t[0] * 1e9)), settle_s)
+    win = _eval_mask(tr, fixes0, int(imu0.t_ns[0]) - ns_from_s(imu0.t[0]), settle_s)
     fig, axes = plt.subplots(1, 2, figsize=(12, 5.5), sharex=True, sharey=True)
     errs = {name: np.hypot(*(_errors(arr, tr.truth)[:, :2].T))
             for name, arr in (("fused", tr.fused), ("naive", tr.naive))}
@@ -400,7 +404,7 @@ def _plots(out: Path, traj: Trajectory, per_lat, results, settle_s, inputs) -> l
     for l in lats:
         rows = []
         for tr, (imu, fixes, _) in zip(per_lat[l], inputs):
-            t0_ns = int(imu.t_ns[0] - round(imu.t[0] * 1e9))
+            t0_ns = int(imu.t_ns[0]) - ns_from_s(imu.t[0])
             m = _eval_mask(tr, fixes, t0_ns, settle_s)
             rows.append((tr.t[m], _nees(tr)[m]))
         n = min(len(r[1]) for r in rows)
@@ -450,17 +454,15 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     if a.fixes == "live":
-        print("toptag eval fusion: --fixes live needs the RSU image pipeline; pass run(fix_source=...) "
-              "from Python until it is wired in")
-        return 2
+        return report("eval fusion", InputError("--fixes live needs the RSU image pipeline; pass "
+                                                "run(fix_source=...) from Python until it is wired in"))
     try:
         lats = [float(s) for s in a.latency_ms.split(",") if s.strip()]
     except ValueError:
-        print(f"toptag eval fusion: --latency-ms must be comma-separated numbers, got {a.latency_ms!r}")
-        return 2
+        return report("eval fusion", InputError(f"--latency-ms must be comma-separated numbers, "
+                                                f"got {a.latency_ms!r}"))
     if not lats or min(lats) < 0:
-        print("toptag eval fusion: latencies must be >= 0")
-        return 2
+        return report("eval fusion", InputError("latencies must be >= 0"))
     res = run(a.out, lats, a.jitter_ms, a.seed, runs=a.runs, n_rsu=a.rsus, route=a.route, plots=not a.no_plots)
     print()
     print(f"{'latency':>8} {'fused cm':>9} {'naive cm':>9} {'DR cm':>8} {'fused/0':>8} {'naive/fused':>11}"

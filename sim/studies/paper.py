@@ -87,14 +87,15 @@ from sim.studies.paper_models import (
 from toptag.camera import Camera
 from toptag.detection import TagObservation
 from toptag.geometry import vehicle_to_world, wrap_angle
+from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.solvers import Limits, position_crlb, solve
+from toptag.units import kmh_from_mps
 from toptag.vehicle import Vehicle
 
 DISTANCES = tuple(range(5, 21))  # whole-metre bins, metres from the RSU (horizontal)
 PRIMARY = "sw"
 NEIGHBOURS = ("se", "nw")  # the primary RSU's neighbours; sopt_2cam adds the nearer one that sees the bus
 VEHICLE = "bus_double"
-SPEED_MAX = 30 / 3.6  # m/s: buses approach the intersection at up to 30 km/h
 # m: "height known" in low_flat: a level roof at 3 m to 0.1 mm. (Known means known: at 16 m a roof-height
 # error moves the back-projected position 3.2 times as far, so even 1 mm of freedom costs accuracy.)
 FLAT_SIGMA_H = 1e-4
@@ -499,7 +500,7 @@ def default_workers() -> int:
 
 
 def run(out: Path, samples: int = 200, seed: int = 0, cases=tuple(CASES), workers: int | None = None,
-        model: ImageModel | None = None, speed_max: float = SPEED_MAX, progress: bool = True,
+        model: ImageModel | None = None, speed_max: float = BUS_MAX_SPEED_MPS, progress: bool = True,
         command: str | None = None, figures: bool = True) -> dict:
     """Run the study; write out/results.json and the figures; return the results."""
     model = ImageModel() if model is None else model
@@ -545,7 +546,7 @@ def run(out: Path, samples: int = 200, seed: int = 0, cases=tuple(CASES), worker
         "distances_m": list(DISTANCES),
         "sampling": (f"per case, sample i at the whole-metre bin 5 + i mod 16 (distance uniform within "
                      f"±0.5 m), uniform bearing within ±{math.degrees(SECTOR_HALF_ANGLE):.0f}° of the RSU's "
-                     f"heading, any bus heading, both plates in view; speed uniform 0-{speed_max * 3.6:.0f} km/h"),
+                     f"heading, any bus heading, both plates in view; speed uniform 0-{kmh_from_mps(speed_max):.0f} km/h"),
         "image_model": model.model_dump() | {"describe": model.describe()},
         "calibration_error": ("'cases': extrinsics known exactly (the paper's setting); 'calibration': the same "
                               "images solved with cameras perturbed by the image model's calibration error "

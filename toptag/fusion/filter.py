@@ -2,10 +2,8 @@
 
 Pure core: no I/O, no Zenoh, no clock. Every call carries integer-nanosecond timestamps.
 
-State (world frame of SPEC.md)::
-
-    x, y [m], yaw [rad, (-pi, pi]], v [m/s, forward speed], yaw_rate [rad/s],
-    gyro_bias [rad/s], wheel_scale [-] (wheel reads (1 + wheel_scale) * v)
+State: x, y, yaw, speed, yaw_rate, gyro_bias, wheel_scale (toptag.fusion.state); each fix is a
+toptag.fix.Fix, each estimate a toptag.fusion.state.FusedState.
 
 Prediction runs at the IMU rate (100 Hz): the accelerometer's forward axis drives v, yaw_rate is a
 random walk (continuous white yaw acceleration, so the yaw/yaw-rate coupling integrates the gyro with
@@ -41,22 +39,30 @@ from typing import NamedTuple
 
 import numpy as np
 
-from toptag.fusion.fixes import FixOutcome, FixRecord, PoseFix, count_outcomes
+from toptag.fix import Fix
+from toptag.fusion.outcomes import FixOutcome, FixRecord, count_outcomes
+from toptag.fusion.state import (
+    STATE_DIM,
+    ST_GYRO_BIAS,
+    ST_SPEED,
+    ST_WHEEL_SCALE,
+    ST_X,
+    ST_Y,
+    ST_YAW,
+    ST_YAW_RATE,
+    FusedState,
+    Health,
+)
 from toptag.geometry import wrap_angle
+from toptag.units import ns_from_s, s_from_ns
 
-STATE_NAMES = ("x", "y", "yaw", "speed", "yaw_rate", "gyro_bias", "wheel_scale")
-NX = 7
-IX, IY, IYAW, IV, IW, IB, IK = range(NX)
 ACQUIRING, TRACKING = 1, 2
 _MODE_NAMES = {ACQUIRING: "acquiring", TRACKING: "tracking"}
-_EYE = np.eye(NX)
+_EYE = np.eye(STATE_DIM)
 
 # chi-square quantiles, 3 dof (avoid importing scipy in the service)
 _CHI2_3 = {0.95: 7.814727903251178, 0.99: 11.344866730144373, 0.995: 12.838156466598647,
            0.999: 16.26623619623813, 0.9999: 21.10751340254392}
-
-
-wrap = wrap_angle  # the filter's name for it
 
 
 def chi2_3dof(p: float) -> float:
@@ -118,62 +124,6 @@ class FilterConfig:
         return math.inf if self.gate_probability is None else chi2_3dof(self.gate_probability)
 
 
-@dataclass(frozen=True)
-class Health:
-    """What a planner needs to know about the fused pose."""
-    status: str  # acquiring | ok | degraded (no fix for degraded_after_s, or sigma) | lost
-    since_last_fix_s: float  # estimate time - capture time of the last applied fix (inf if none)
-    last_fix_delay_s: float  # arrival - capture of the last applied fix (nan if unknown)
-    last_fix_source: str | None  # RSU of the last applied fix
-    last_received_delay_s: float  # arrival - capture of the most recently received fix, any outcome
-    rejected: int  # fixes rejected by the gate (total)
-    consecutive_rejections: int  # rejected since the last applied fix
-    accepted: int  # fixes applied (accepted, re-acquired, start-up)
-    pos_sigma_m: float  # sqrt of the largest eigenvalue of the position covariance
-    yaw_sigma_rad: float
-    extrapolated_s: float  # how far beyond the newest IMU sample the estimate was predicted
-
-    def to_dict(self) -> dict:
-        return dict(self.__dict__)
-
-    def protocol_fields(self) -> dict:
-        """The fields of protocol.messages.FusionHealth."""
-        def ns(v):
-            return None if not math.isfinite(v) else int(round(v * 1e9))
-        return {"status": self.status, "accepted_fixes": self.accepted, "rejected_fixes": self.rejected,
-                "since_last_fix_ns": ns(self.since_last_fix_s), "last_fix_delay_ns": ns(self.last_fix_delay_s),
-                "last_fix_rsu": self.last_fix_source}
-
-
-@dataclass(frozen=True)
-class FusedPose:
-    t_ns: int
-    x: float
-    y: float
-    yaw: float
-    speed: float
-    yaw_rate: float
-    gyro_bias: float
-    wheel_scale: float
-    cov: np.ndarray  # 3x3 covariance of (x, y, yaw)
-    state_cov: np.ndarray  # 7x7 covariance of the full state (STATE_NAMES order)
-    health: Health
-
-    @property
-    def state(self) -> np.ndarray:
-        return np.array([self.x, self.y, self.yaw, self.speed, self.yaw_rate, self.gyro_bias, self.wheel_scale])
-
-    def to_dict(self) -> dict:
-        return {"t_ns": self.t_ns, "x": self.x, "y": self.y, "yaw": self.yaw, "speed": self.speed,
-                "yaw_rate": self.yaw_rate, "gyro_bias": self.gyro_bias, "wheel_scale": self.wheel_scale,
-                "cov": self.cov.tolist(), "health": self.health.to_dict()}
-
-    def protocol_fields(self) -> dict:
-        """The fields of protocol.messages.FusedPose except bus_id (the service adds it)."""
-        return {"t_ns": self.t_ns, "x": self.x, "y": self.y, "yaw": self.yaw, "speed": self.speed,
-                "yaw_rate": self.yaw_rate, "covariance": self.cov.tolist(), "health": self.health.protocol_fields()}
-
-
 class _Cand(NamedTuple):
     """A fix that was not applied, remembered for consensus."""
     t_ns: int
@@ -203,10 +153,10 @@ class BusFilter:
     """Delayed-fix EKF. See the module docstring.
 
     add_imu(t_ns, gyro_z, accel_x, accel_y=None, wheel_speed=None) -> bool   (alias: predict)
-    add_fix(fix, arrival_ns=None) -> FixOutcome       (fix: PoseFix, or a dict / message with its fields)
+    add_fix(fix: Fix, arrival_ns=None) -> FixOutcome
     initialize(t_ns, x, y, yaw, cov=None, pos_sigma=5.0, yaw_sigma=pi, speed=None, speed_sigma=None,
                trusted=False)
-    estimate(t_ns=None) -> FusedPose | None           (None before start-up)
+    estimate(t_ns=None) -> FusedState | None           (None before start-up)
     counters() -> dict                                (final outcome counts, totals and per source)
     fix_outcomes() -> list[(key, FixOutcome, d2)]      (fixes still in the buffer)
     """
@@ -215,7 +165,7 @@ class BusFilter:
         self.cfg = config or FilterConfig()
         c = self.cfg
         self._gate_thr = c.gate_threshold
-        self._buffer_ns = int(round(c.buffer_s * 1e9))
+        self._buffer_ns = ns_from_s(c.buffer_s)
         self._q_pos = c.pos_noise_density ** 2
         self._q_yaw = c.yaw_noise_density ** 2
         self._q_v = c.accel_noise_density ** 2
@@ -286,7 +236,7 @@ class BusFilter:
         if t_ns <= head.t:  # start-up time after this sample
             return True
         x, P, g = self._advance(head.x, head.P, head.g, head.t, head.u, t_ns, record=True)
-        x, P = self._imu_update(x, self._yaw_rate_noise(P, (t_ns - head.t) * 1e-9), u)
+        x, P = self._imu_update(x, self._yaw_rate_noise(P, s_from_ns(t_ns - head.t)), u)
         self._steps.append(_Step(t_ns, u, x, P, g))
         self._dirty = len(self._steps)
         self._prune()
@@ -305,14 +255,14 @@ class BusFilter:
             np.asarray(cov, dtype=float).reshape(3, 3)
         t_ns = int(t_ns)
         gate = _Gate(TRACKING, t_ns, 0, ()) if trusted else _Gate(ACQUIRING, None, 0, ())
-        self._start(t_ns, np.array([x, y, wrap(yaw)]), P3, gate, speed, speed_sigma)
+        self._start(t_ns, np.array([x, y, wrap_angle(yaw)]), P3, gate, speed, speed_sigma)
 
-    def add_fix(self, fix: PoseFix, arrival_ns: int | None = None) -> FixOutcome:
+    def add_fix(self, fix: Fix, arrival_ns: int | None = None) -> FixOutcome:
         """A pose fix (capture time fix.t_ns). `arrival_ns` (or fix.arrival_ns; default the newest
         IMU time) only feeds the health report. Returns the decision taken now; a fix applied in the
         past may be re-decided when earlier fixes arrive later (counters() has the final word)."""
-        if not isinstance(fix, PoseFix):
-            fix = PoseFix.from_any(fix)
+        if not isinstance(fix, Fix):  # a wire message goes through protocol.convert.fix_from_message
+            raise TypeError(f"add_fix takes a toptag.fix.Fix, not {type(fix).__name__}")
         arrival = arrival_ns if arrival_ns is not None else fix.arrival_ns
         if arrival is None:
             arrival = self._last_imu_t
@@ -330,7 +280,7 @@ class BusFilter:
         if fix.t_ns <= self._steps[0].t:
             return self._count_now(fix, FixOutcome.TOO_OLD)
         head = self._steps[-1].t
-        if fix.t_ns > head + int(self.cfg.max_future_s * 1e9):
+        if fix.t_ns > head + ns_from_s(self.cfg.max_future_s):
             return self._count_now(fix, FixOutcome.FUTURE)
         key = fix.key
         rec = FixRecord(fix, key, FixOutcome.PENDING, arrival_ns=None if arrival is None else int(arrival))
@@ -347,7 +297,7 @@ class BusFilter:
         self._ensure_clean(k + 1)
         return rec.outcome
 
-    def estimate(self, t_ns: int | None = None) -> FusedPose | None:
+    def estimate(self, t_ns: int | None = None) -> FusedState | None:
         """Fused pose at t_ns (default: the newest IMU time). Beyond the newest sample the state is
         predicted (constant acceleration input, constant yaw rate); inside the buffer it is
         interpolated by prediction from the state before. None before start-up."""
@@ -367,7 +317,7 @@ class BusFilter:
             x, P, g = base.x, base.P, base.g
         else:
             x, P, g = self._advance(base.x, base.P, base.g, base.t, base.u, t_ns, record=False)
-            P = self._yaw_rate_noise(P, (t_ns - base.t) * 1e-9)
+            P = self._yaw_rate_noise(P, s_from_ns(t_ns - base.t))
         return self._fused(t_ns, x, P, g, max(0, t_ns - head.t))
 
     def counters(self) -> dict:
@@ -392,13 +342,13 @@ class BusFilter:
         return [(r.key, r.outcome, r.d2) for r in self._fix_recs]
 
     # ------------------------------------------------------------------ start-up
-    def _maybe_start_from(self, fix: PoseFix, arrival: int | None) -> FixOutcome:
+    def _maybe_start_from(self, fix: Fix, arrival: int | None) -> FixOutcome:
         c = self.cfg
         sd = np.sqrt(np.diag(fix.cov))
         if not c.init_from_fix or max(sd[0], sd[1]) > c.init_max_pos_sigma or sd[2] > c.init_max_yaw_sigma:
             return self._count_now(fix, FixOutcome.NOT_INITIALIZED)
         delay = None if arrival is None else int(arrival) - fix.t_ns
-        self._start(fix.t_ns, fix.z_vec, fix.cov, _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source), None, None)
+        self._start(fix.t_ns, fix.pose, fix.cov, _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source), None, None)
         self._seen.add((fix.source, "seq", fix.seq))
         self._seen.add((fix.source, "t", fix.t_ns))
         return self._count_now(fix, FixOutcome.INITIALIZED)
@@ -410,28 +360,28 @@ class BusFilter:
             if t <= t0:
                 u0 = u
         ref = u0 if u0 is not None else (self._pre_imu[0][1] if self._pre_imu else None)
-        x = np.zeros(NX)
-        P = np.zeros((NX, NX))
+        x = np.zeros(STATE_DIM)
+        P = np.zeros((STATE_DIM, STATE_DIM))
         x[:3] = pose
-        x[IYAW] = wrap(x[IYAW])
+        x[ST_YAW] = wrap_angle(x[ST_YAW])
         P[:3, :3] = P3
         if speed is not None:
-            x[IV] = speed
-            P[IV, IV] = (c.speed_sigma0 if speed_sigma is None else speed_sigma) ** 2
+            x[ST_SPEED] = speed
+            P[ST_SPEED, ST_SPEED] = (c.speed_sigma0 if speed_sigma is None else speed_sigma) ** 2
         elif ref is not None and ref[2] is not None:
-            x[IV] = ref[2]
-            P[IV, IV] = c.speed_sigma0 ** 2 + (ref[2] * c.wheel_scale_sigma0) ** 2
+            x[ST_SPEED] = ref[2]
+            P[ST_SPEED, ST_SPEED] = c.speed_sigma0 ** 2 + (ref[2] * c.wheel_scale_sigma0) ** 2
         else:
-            P[IV, IV] = 2.0 ** 2
+            P[ST_SPEED, ST_SPEED] = 2.0 ** 2
         sb2 = c.gyro_bias_sigma0 ** 2
         if ref is not None:
-            x[IW] = ref[0]
-            P[IW, IW] = sb2 + self._r_g
-            P[IW, IB] = P[IB, IW] = -sb2
+            x[ST_YAW_RATE] = ref[0]
+            P[ST_YAW_RATE, ST_YAW_RATE] = sb2 + self._r_g
+            P[ST_YAW_RATE, ST_GYRO_BIAS] = P[ST_GYRO_BIAS, ST_YAW_RATE] = -sb2
         else:
-            P[IW, IW] = 0.5 ** 2
-        P[IB, IB] = sb2
-        P[IK, IK] = c.wheel_scale_sigma0 ** 2
+            P[ST_YAW_RATE, ST_YAW_RATE] = 0.5 ** 2
+        P[ST_GYRO_BIAS, ST_GYRO_BIAS] = sb2
+        P[ST_WHEEL_SCALE, ST_WHEEL_SCALE] = c.wheel_scale_sigma0 ** 2
         self._start_ns = t0
         self._steps = [_Step(t0, u0, x, P, gate)]
         self._dirty = 1
@@ -440,7 +390,7 @@ class BusFilter:
             if t > t0:
                 head = self._steps[-1]
                 xx, PP, g = self._advance(head.x, head.P, head.g, head.t, head.u, t, record=True)
-                xx, PP = self._imu_update(xx, self._yaw_rate_noise(PP, (t - head.t) * 1e-9), u)
+                xx, PP = self._imu_update(xx, self._yaw_rate_noise(PP, s_from_ns(t - head.t)), u)
                 self._steps.append(_Step(t, u, xx, PP, g))
         self._dirty = len(self._steps)
         self._prune()
@@ -460,7 +410,7 @@ class BusFilter:
         while i <= upto:
             prev, cur = self._steps[i - 1], self._steps[i]
             x, P, g = self._advance(prev.x, prev.P, prev.g, prev.t, prev.u, cur.t, record=True)
-            cur.x, cur.P = self._imu_update(x, self._yaw_rate_noise(P, (cur.t - prev.t) * 1e-9), cur.u)
+            cur.x, cur.P = self._imu_update(x, self._yaw_rate_noise(P, s_from_ns(cur.t - prev.t)), cur.u)
             cur.g = g
             i += 1
         self._dirty = max(self._dirty, upto + 1)
@@ -483,12 +433,12 @@ class BusFilter:
             self._seen.discard((r.fix.source, "t", r.fix.t_ns))
         del self._fix_t[:m], self._fix_keys[:m], self._fix_recs[:m]
 
-    def _archive(self, fix: PoseFix, outcome: FixOutcome):
+    def _archive(self, fix: Fix, outcome: FixOutcome):
         self._archived[outcome.value] += 1
         d = self._archived_src.setdefault(fix.source, count_outcomes([]))
         d[outcome.value] += 1
 
-    def _count_now(self, fix: PoseFix, outcome: FixOutcome) -> FixOutcome:
+    def _count_now(self, fix: Fix, outcome: FixOutcome) -> FixOutcome:
         self._archive(fix, outcome)
         return outcome
 
@@ -502,41 +452,41 @@ class BusFilter:
         for j in range(lo, hi):
             rec = self._fix_recs[j]
             tf = rec.fix.t_ns
-            xf, Pf = self._predict(x, P, (tf - t) * 1e-9, a) if tf > t else (x, P)
+            xf, Pf = self._predict(x, P, s_from_ns(tf - t), a) if tf > t else (x, P)
             xu, Pu, g, outcome, d2 = self._apply_fix(xf, Pf, g, rec.fix, rec.arrival_ns)
             if outcome.applied:  # split the interval at the fix; a refused fix leaves it whole
                 x, P, t = xu, Pu, tf
             if record:
                 rec.outcome, rec.d2 = outcome, d2
         if t_to > t:
-            x, P = self._predict(x, P, (t_to - t) * 1e-9, a)
+            x, P = self._predict(x, P, s_from_ns(t_to - t), a)
         return x, P, g
 
     def _predict(self, x, P, dt: float, a: float):
-        th, v, w = x[IYAW], x[IV], x[IW]
+        th, v, w = x[ST_YAW], x[ST_SPEED], x[ST_YAW_RATE]
         thm = th + 0.5 * w * dt
         c, s = math.cos(thm), math.sin(thm)
         d = v * dt + 0.5 * a * dt * dt
         xn = x.copy()
-        xn[IX] += d * c
-        xn[IY] += d * s
-        xn[IYAW] = wrap(th + w * dt)
-        xn[IV] = v + a * dt
+        xn[ST_X] += d * c
+        xn[ST_Y] += d * s
+        xn[ST_YAW] = wrap_angle(th + w * dt)
+        xn[ST_SPEED] = v + a * dt
         F = _EYE.copy()
-        F[IX, IYAW] = -d * s
-        F[IX, IV] = dt * c
-        F[IX, IW] = -d * s * 0.5 * dt
-        F[IY, IYAW] = d * c
-        F[IY, IV] = dt * s
-        F[IY, IW] = d * c * 0.5 * dt
-        F[IYAW, IW] = dt
+        F[ST_X, ST_YAW] = -d * s
+        F[ST_X, ST_SPEED] = dt * c
+        F[ST_X, ST_YAW_RATE] = -d * s * 0.5 * dt
+        F[ST_Y, ST_YAW] = d * c
+        F[ST_Y, ST_SPEED] = dt * s
+        F[ST_Y, ST_YAW_RATE] = d * c * 0.5 * dt
+        F[ST_YAW, ST_YAW_RATE] = dt
         Pn = F @ P @ F.T
-        Pn[IX, IX] += self._q_pos * dt
-        Pn[IY, IY] += self._q_pos * dt
-        Pn[IYAW, IYAW] += self._q_yaw * dt
-        Pn[IV, IV] += self._q_v * dt
-        Pn[IB, IB] += self._q_b * dt
-        Pn[IK, IK] += self._q_k * dt
+        Pn[ST_X, ST_X] += self._q_pos * dt
+        Pn[ST_Y, ST_Y] += self._q_pos * dt
+        Pn[ST_YAW, ST_YAW] += self._q_yaw * dt
+        Pn[ST_SPEED, ST_SPEED] += self._q_v * dt
+        Pn[ST_GYRO_BIAS, ST_GYRO_BIAS] += self._q_b * dt
+        Pn[ST_WHEEL_SCALE, ST_WHEEL_SCALE] += self._q_k * dt
         return xn, Pn
 
     def _yaw_rate_noise(self, P, dt: float):
@@ -548,10 +498,10 @@ class BusFilter:
             return P
         qw = self._q_a * dt
         P = P.copy()
-        P[IYAW, IYAW] += qw * dt * dt / 4
-        P[IYAW, IW] += qw * dt / 2
-        P[IW, IYAW] += qw * dt / 2
-        P[IW, IW] += qw
+        P[ST_YAW, ST_YAW] += qw * dt * dt / 4
+        P[ST_YAW, ST_YAW_RATE] += qw * dt / 2
+        P[ST_YAW_RATE, ST_YAW] += qw * dt / 2
+        P[ST_YAW_RATE, ST_YAW_RATE] += qw
         return P
 
     def _imu_update(self, x, P, u):
@@ -559,16 +509,16 @@ class BusFilter:
             return x, P
         gyro, _, wheel = u
         if wheel is None:
-            H = np.zeros((1, NX))
-            H[0, IW] = H[0, IB] = 1.0
-            nu = np.array([gyro - x[IW] - x[IB]])
+            H = np.zeros((1, STATE_DIM))
+            H[0, ST_YAW_RATE] = H[0, ST_GYRO_BIAS] = 1.0
+            nu = np.array([gyro - x[ST_YAW_RATE] - x[ST_GYRO_BIAS]])
             R = np.array([[self._r_g]])
         else:
-            H = np.zeros((2, NX))
-            H[0, IW] = H[0, IB] = 1.0
-            H[1, IV] = 1.0 + x[IK]
-            H[1, IK] = x[IV]
-            nu = np.array([gyro - x[IW] - x[IB], wheel - (1.0 + x[IK]) * x[IV]])
+            H = np.zeros((2, STATE_DIM))
+            H[0, ST_YAW_RATE] = H[0, ST_GYRO_BIAS] = 1.0
+            H[1, ST_SPEED] = 1.0 + x[ST_WHEEL_SCALE]
+            H[1, ST_WHEEL_SCALE] = x[ST_SPEED]
+            nu = np.array([gyro - x[ST_YAW_RATE] - x[ST_GYRO_BIAS], wheel - (1.0 + x[ST_WHEEL_SCALE]) * x[ST_SPEED]])
             R = np.diag([self._r_g, self._r_w])
         return self._kalman(x, P, H, nu, R)
 
@@ -578,22 +528,22 @@ class BusFilter:
         S = H @ PHt + R
         K = np.linalg.solve(S, PHt.T).T
         xn = x + K @ nu
-        xn[IYAW] = wrap(xn[IYAW])
+        xn[ST_YAW] = wrap_angle(xn[ST_YAW])
         A = _EYE - K @ H
         Pn = A @ P @ A.T + K @ R @ K.T
         return xn, 0.5 * (Pn + Pn.T)
 
-    def _pose_update(self, x, P, fix: PoseFix, nu):
-        H = np.zeros((3, NX))
-        H[0, IX] = H[1, IY] = H[2, IYAW] = 1.0
+    def _pose_update(self, x, P, fix: Fix, nu):
+        H = np.zeros((3, STATE_DIM))
+        H[0, ST_X] = H[1, ST_Y] = H[2, ST_YAW] = 1.0
         return self._kalman(x, P, H, nu, fix.cov)
 
     # ------------------------------------------------------------------ gating
-    def _apply_fix(self, x, P, g: _Gate, fix: PoseFix, arrival_ns: int | None):
+    def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None):
         """Gate one fix against the state at its capture time; returns (x, P, gate, outcome, d2)."""
         delay = None if arrival_ns is None else arrival_ns - fix.t_ns
         applied = _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source)
-        nu = np.array([fix.x - x[IX], fix.y - x[IY], wrap(fix.yaw - x[IYAW])])
+        nu = np.array([fix.x - x[ST_X], fix.y - x[ST_Y], wrap_angle(fix.yaw - x[ST_YAW])])
         P3 = P[:3, :3]
         R = fix.cov
         if self._gate_thr == math.inf:
@@ -621,7 +571,7 @@ class BusFilter:
         cand = _Cand(fix.t_ns, fix.source, nu, R, np.diag(P3).copy())
         cands = self._window(g.cands, fix.t_ns) + (cand,)
         starving = g.last_accept_ns is None or \
-            fix.t_ns - g.last_accept_ns >= int(self.cfg.reacquire_after_s * 1e9)
+            fix.t_ns - g.last_accept_ns >= ns_from_s(self.cfg.reacquire_after_s)
         if starving and self._consensus(cands, self.cfg.reacquire_min_fixes, self.cfg.reacquire_min_sources):
             P = P.copy()
             P[:3, :3] += np.diag(nu * nu)
@@ -630,14 +580,14 @@ class BusFilter:
         return x, P, g._replace(consecutive=g.consecutive + 1, cands=cands), FixOutcome.REJECTED_GATE, d2
 
     def _window(self, cands: tuple, t_ns: int) -> tuple:
-        cut = t_ns - int(self.cfg.reacquire_window_s * 1e9)
+        cut = t_ns - ns_from_s(self.cfg.reacquire_window_s)
         return tuple(c for c in cands if c.t_ns >= cut)
 
     def _agree(self, a: _Cand, b: _Cand) -> bool:
         """Two refused fixes tell the same story: equal innovations within fix noise, the filter's
         drift between their times and `consensus_sigma` (chi-square, `consensus_probability`)."""
         d = a.nu - b.nu
-        d[2] = wrap(d[2])
+        d[2] = wrap_angle(d[2])
         C = a.R + b.R + np.diag(self._cons_var + np.abs(a.p_diag - b.p_diag))
         return float(d @ np.linalg.solve(C, d)) <= self._cons_thr
 
@@ -659,11 +609,11 @@ class BusFilter:
         return len(group) >= min_fixes and len({c.source for c in group}) >= min_sources
 
     # ------------------------------------------------------------------ output
-    def _fused(self, t_ns: int, x, P, g: _Gate, extrap_ns: int) -> FusedPose:
+    def _fused(self, t_ns: int, x, P, g: _Gate, extrap_ns: int) -> FusedState:
         c = self.cfg
-        since = math.inf if g.last_accept_ns is None else (t_ns - g.last_accept_ns) * 1e-9
+        since = math.inf if g.last_accept_ns is None else s_from_ns(t_ns - g.last_accept_ns)
         pos_sigma = float(math.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0)))
-        yaw_sigma = float(math.sqrt(max(P[IYAW, IYAW], 0.0)))
+        yaw_sigma = float(math.sqrt(max(P[ST_YAW, ST_YAW], 0.0)))
         if g.mode == ACQUIRING:
             status = "acquiring"
         elif since > c.lost_after_s or pos_sigma > c.lost_pos_sigma:
@@ -676,12 +626,12 @@ class BusFilter:
             sum(1 for r in self._fix_recs if r.outcome is FixOutcome.REJECTED_GATE)
         accepted = sum(self._archived[o.value] for o in FixOutcome if o.applied) + \
             sum(1 for r in self._fix_recs if r.outcome.applied)
-        delay = math.nan if g.last_delay_ns is None else g.last_delay_ns * 1e-9
-        rx = math.nan if self._last_rx_delay_ns is None else self._last_rx_delay_ns * 1e-9
+        delay = math.nan if g.last_delay_ns is None else s_from_ns(g.last_delay_ns)
+        rx = math.nan if self._last_rx_delay_ns is None else s_from_ns(self._last_rx_delay_ns)
         health = Health(status, since, delay, g.last_source, rx, rejected, g.consecutive, accepted,
-                        pos_sigma, yaw_sigma, extrap_ns * 1e-9)
-        return FusedPose(t_ns, float(x[IX]), float(x[IY]), float(x[IYAW]), float(x[IV]), float(x[IW]),
-                         float(x[IB]), float(x[IK]), P[:3, :3].copy(), P.copy(), health)
+                        pos_sigma, yaw_sigma, s_from_ns(extrap_ns))
+        return FusedState(t_ns, float(x[ST_X]), float(x[ST_Y]), float(x[ST_YAW]), float(x[ST_SPEED]), float(x[ST_YAW_RATE]),
+                         float(x[ST_GYRO_BIAS]), float(x[ST_WHEEL_SCALE]), P[:3, :3].copy(), P.copy(), health)
 
 
 class _StepTimes:
@@ -698,4 +648,4 @@ class _StepTimes:
         return self._s[i].t
 
 
-__all__ = ["BusFilter", "FilterConfig", "FusedPose", "Health", "PoseFix", "FixOutcome", "STATE_NAMES", "wrap"]
+__all__ = ["BusFilter", "FilterConfig", "FixOutcome"]

@@ -22,7 +22,9 @@ from toptag.detection import (
     TagDetector,
     assign_to_vehicles,
 )
+from toptag.fix import Fix
 from toptag.geometry import vehicle_to_world
+from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.rsu.regions import (
     Band,
     Box,
@@ -32,13 +34,9 @@ from toptag.rsu.regions import (
     projected_side_px,
     tag_region,
 )
-from toptag.rsu.tracking import (
-    MAX_SPEED_MPS,
-    SPEED_MARGIN,
-    TrackSettings,
-    VehicleTrack,
-)
+from toptag.rsu.tracking import SPEED_MARGIN, TrackSettings, VehicleTrack
 from toptag.solvers import PoseSolution, solve
+from toptag.units import s_from_ns
 from toptag.vehicle import Vehicle
 
 
@@ -90,6 +88,7 @@ class VehicleResult:
     mode: str  # "tracked" | "hinted" | "out_of_view" | "acquired" | "searching" | "waiting"
     regions: int = 0
     observations: list = field(default_factory=list)  # the TagObservations the solution was made from
+    fix: Fix | None = None  # the solution as a fix of this camera (set when the solution is ok)
 
 
 @dataclass
@@ -133,7 +132,8 @@ class _DetectorPool:
 
 
 class RsuPipeline:
-    """Per-camera pipeline. `process(gray, t_ns)` once per frame; vehicles come and go with their bags."""
+    """Per-camera pipeline. `process(gray, t_ns, seq)` once per frame; vehicles come and go with their
+    bags. Its fixes carry the camera id as their source."""
 
     def __init__(self, camera: Camera, settings: PipelineSettings | None = None):
         self.camera = camera
@@ -164,11 +164,11 @@ class RsuPipeline:
 
     def _surely_out_of_view(self, vid: str, t_ns: int) -> bool:
         c = self._coarse.get(vid)
-        if c is None or abs(t_ns - c[0]) * 1e-9 > self.settings.coarse_max_age_s:
+        if c is None or s_from_ns(abs(t_ns - c[0])) > self.settings.coarse_max_age_s:
             return False
         t, x, y, sigma = c
         v = self.vehicles[vid]
-        reach = 3 * sigma + MAX_SPEED_MPS * SPEED_MARGIN * abs(t_ns - t) * 1e-9 + np.hypot(v.length, v.width) / 2
+        reach = 3 * sigma + BUS_MAX_SPEED_MPS * SPEED_MARGIN * s_from_ns(abs(t_ns - t)) + np.hypot(v.length, v.width) / 2
         return not disc_in_view(self.camera, x, y, reach, v.height - 0.3, v.height + 0.3)
 
     def hint(self, vehicle_id: str, t_ns: int, x: float, y: float, yaw: float, z: float) -> None:
@@ -185,7 +185,8 @@ class RsuPipeline:
         return self._pools[families]
 
     # ---- per frame ----------------------------------------------------------------------------
-    def process(self, gray: np.ndarray, t_ns: int) -> FrameResult:
+    def process(self, gray: np.ndarray, t_ns: int, seq: int | None = None) -> FrameResult:
+        """Detect and solve every announced vehicle in the frame captured at t_ns (frame number seq)."""
         result = FrameResult(t_ns)
         if not self.vehicles:
             return result
@@ -239,14 +240,15 @@ class RsuPipeline:
                 self.tracks[vid].miss()
             if sol is None and mode not in ("waiting", "out_of_view"):
                 mode = "searching"
-            result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0), obs)
+            fix = Fix.from_solution(sol, t_ns, self.camera.id, seq) if sol is not None and sol.ok else None
+            result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0), obs, fix)
         result.solve_ms = (time.perf_counter() - t1) * 1e3
         return result
 
     def _acquisition_due(self, t_ns: int, others_tracked: bool) -> bool:
         if not others_tracked or self._last_acquire_ns is None:
             return True
-        return (t_ns - self._last_acquire_ns) * 1e-9 >= self.settings.acquire_period_s
+        return s_from_ns(t_ns - self._last_acquire_ns) >= self.settings.acquire_period_s
 
     def _acquisition_jobs(self, vehicles: list[Vehicle]) -> list[DetectJob]:
         s = self.settings
@@ -263,7 +265,7 @@ class RsuPipeline:
 
     def _fresh_hint(self, vid: str, t_ns: int) -> bool:
         h = self._hints.get(vid)
-        return h is not None and abs(t_ns - h.t_ns) * 1e-9 <= self.settings.hint_max_age_s
+        return h is not None and s_from_ns(abs(t_ns - h.t_ns)) <= self.settings.hint_max_age_s
 
     def _tracking_jobs(self, vehicle: Vehicle, track: VehicleTrack, t_ns: int, extra_radius: float = 0.0) -> list[DetectJob]:
         p = track.predict(t_ns, extra_radius)

@@ -1,6 +1,6 @@
 """Per-vehicle image tracking state: where a found bus will be in the next frame, and how sure we are.
 
-Motion is bounded by the bus's physics (≤ 30 km/h, moderate acceleration), so a short-term constant
+Motion is bounded by the bus's physics (toptag.limits: speed, braking, yaw rate), so a short-term constant
 velocity prediction with a margin that grows with the time since the last fix always contains it."""
 from __future__ import annotations
 
@@ -9,17 +9,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from toptag.geometry import wrap_angle
+from toptag.limits import BUS_MAX_DECEL_MPS2, BUS_MAX_SPEED_MPS, BUS_MAX_YAW_RATE
+from toptag.units import s_from_ns
 
-MAX_SPEED_MPS = 30 / 3.6
-SPEED_MARGIN = 1.2
+SPEED_MARGIN = 1.2  # on the bus's top speed: a region must hold a bus that speeds a little
 
 
 @dataclass
 class TrackSettings:
     base_radius_m: float = 0.08  # fix error and body flex; the crop adds its own pixel padding
     velocity_error_mps: float = 1.0  # what two noisy fixes 0.1 s apart may get wrong
-    max_accel_mps2: float = 3.0  # emergency braking of a city bus
-    max_yaw_rate: float = 0.6  # rad/s: a tight turn at low speed
+    max_accel_mps2: float = BUS_MAX_DECEL_MPS2
+    max_yaw_rate: float = BUS_MAX_YAW_RATE
     z_margin_m: float = 0.12  # roof bounce around the last measured roof height
     velocity_smoothing: float = 0.5  # weight of the newest velocity from consecutive fixes
     lost_after_misses: int = 3  # frames without any tag before falling back to acquisition
@@ -53,11 +54,11 @@ class VehicleTrack:
     def update(self, t_ns: int, x: float, y: float, yaw: float, z: float) -> None:
         pose = np.array([x, y, yaw, z])
         if self.pose is not None and t_ns > self.t_ns:
-            dt = (t_ns - self.t_ns) * 1e-9
+            dt = s_from_ns(t_ns - self.t_ns)
             v = np.array([(x - self.pose[0]) / dt, (y - self.pose[1]) / dt,
                           wrap_angle(yaw - self.pose[2]) / dt])
             speed = np.hypot(v[0], v[1])
-            cap = MAX_SPEED_MPS * SPEED_MARGIN
+            cap = BUS_MAX_SPEED_MPS * SPEED_MARGIN
             if speed > cap:  # a noisy pair of fixes must not throw the next region off
                 v[:2] *= cap / speed
             v[2] = np.clip(v[2], -self.settings.max_yaw_rate, self.settings.max_yaw_rate)
@@ -77,11 +78,11 @@ class VehicleTrack:
     def predict(self, t_ns: int, extra_radius: float = 0.0) -> PosePrediction:
         """Where the vehicle is at t_ns (before or after the last fix), with a margin that surely holds it."""
         s = self.settings
-        dt = abs(t_ns - self.t_ns) * 1e-9
+        dt = s_from_ns(abs(t_ns - self.t_ns))
         x, y, yaw, z = self.pose
         if self.velocity is None:
             # One fix only: the bus may be moving at any legal speed in any direction.
-            radius = s.base_radius_m + extra_radius + MAX_SPEED_MPS * SPEED_MARGIN * dt
+            radius = s.base_radius_m + extra_radius + BUS_MAX_SPEED_MPS * SPEED_MARGIN * dt
             yaw_margin = s.max_yaw_rate * dt + 0.05
         else:
             vx, vy, w = self.velocity

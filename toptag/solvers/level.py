@@ -69,7 +69,7 @@ TURN_RATIO = math.sqrt(3.0)  # sigma(turn) / sigma(offset) of a line fitted to e
 DETECTOR_SIGMA_PX = 0.05
 # Per corner coordinate. The other solvers' floor (0.1 px, common.SIGMA_FLOOR_PX) is above what the
 # detector achieves; with it the height prior would be trusted too much.
-SIGMA_FLOOR_PX = 0.01
+LEVEL_SIGMA_FLOOR_PX = 0.01
 
 
 @dataclass(frozen=True)
@@ -409,7 +409,7 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
     1 − calib_alpha quantile; the estimate shrinks toward the prior, so an honest error stays below it
     at least that often) makes the fit unusable: the cameras disagree by more than their calibration."""
     scale = noise_scale(turn_ratio)
-    floor_w, prior_w = SIGMA_FLOOR_PX / scale, DETECTOR_SIGMA_PX / scale
+    floor_w, prior_w = LEVEL_SIGMA_FLOOR_PX / scale, DETECTOR_SIGMA_PX / scale
     prob = LevelProblem(c, h, sigma_h, calib, turn_ratio, unit_weights, bias=bias)
     known = sigma_px is not None
     p = prob.start(start)
@@ -486,7 +486,7 @@ def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float
         if fits is None or fits.turn_ratio != turn_ratio or fits.c is not c:
             sigma_w = sigma_px / scale if sigma_px is not None else DETECTOR_SIGMA_PX / scale
             fits = SubsetFits(c, h, sigma_h, turn_ratio, sigma_w)
-        weights, sigma0_w, ratio = misfit_weights(fits, keep, SIGMA_FLOOR_PX / scale, calib)
+        weights, sigma0_w, ratio = misfit_weights(fits, keep, LEVEL_SIGMA_FLOOR_PX / scale, calib)
         out = weights < MISFIT_DROP_WEIGHT
         if out.any():
             for k, r in zip(np.array(keep)[out], ratio[out]):

@@ -1,0 +1,103 @@
+"""The life of every toptag service process, in one place: logging, inputs, the Zenoh session,
+SIGINT/SIGTERM, a clean close, and the exit code.
+
+    run_service(prog, args, load, build, describe)
+
+- load() reads and checks the inputs (a bad file raises toptag.errors.InputError: one line, exit 2);
+- the session opens from the Zenoh options (SetupError: one line, exit 1);
+- build(session, inputs) makes the service; SIGINT/SIGTERM call its stop(); run(duration) runs it;
+  close() and the session's close follow, whatever happened; exit 0.
+Exit codes come from toptag.errors.exit_code: the same mapping as the CLI's. Here, at the protocol
+layer, so that the simulator (sim) and the services (services) share it."""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import zenoh
+
+from protocol.transport.config import add_zenoh_arguments, config_summary, open_session, zenoh_config_from_args
+from toptag.errors import EXIT_FAILURE, EXIT_OK, InputError, ToptagError, report
+
+log = logging.getLogger(__name__)
+
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+class Service(Protocol):
+    def run(self, duration: float | None) -> None: ...
+    def stop(self) -> None: ...
+    def close(self) -> None: ...
+
+
+def add_service_arguments(p: argparse.ArgumentParser, *, default_mode: str = "peer", duration: bool = True) -> None:
+    """--duration, --log-level and the Zenoh options of add_zenoh_arguments."""
+    if duration:
+        p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    add_zenoh_arguments(p, default_mode=default_mode)
+
+
+def setup_logging(level: str) -> None:
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=level, format=LOG_FORMAT, stream=sys.stderr)
+    else:
+        logging.getLogger().setLevel(level)
+
+
+def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
+                build: Callable[[zenoh.Session, Any], Service], describe: Callable[[Any], str], *,
+                zenoh_config: Callable[[argparse.Namespace, Any], zenoh.Config] | None = None) -> int:
+    """Run one service process (see the module docstring). ``zenoh_config(args, inputs)`` builds the
+    session's config when the default (the service's Zenoh options) is not enough (the router)."""
+    setup_logging(args.log_level)
+    stopping = threading.Event()
+    service: Service | None = None
+
+    def on_signal(signum, _frame):
+        log.info("received %s, stopping", signal.Signals(signum).name)
+        stopping.set()
+        if service is not None:
+            service.stop()
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            inputs = load()
+            if stopping.is_set():
+                return EXIT_OK
+            conf = zenoh_config(args, inputs) if zenoh_config else zenoh_config_from_args(args)
+            session = open_session(conf)
+            log.info("zenoh session open (%s)", config_summary(conf))
+        except ToptagError as e:
+            return report(prog, e)
+        except ValueError as e:  # a loader's own check (e.g. pydantic): the input is unusable
+            return report(prog, InputError(str(e)))
+        try:
+            service = build(session, inputs)
+            if stopping.is_set():
+                service.stop()
+            log.info("%s ready", describe(inputs))
+            try:
+                service.run(getattr(args, "duration", None))
+            finally:
+                service.close()
+        except ToptagError as e:
+            return report(prog, e)
+        except Exception as e:  # a bug: logged with its traceback, the process still closes cleanly
+            log.exception("%s failed: %s", prog, e)
+            return EXIT_FAILURE
+        finally:
+            session.close()
+            log.info("%s stopped", describe(inputs))
+        return EXIT_OK
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

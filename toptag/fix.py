@@ -1,0 +1,85 @@
+"""The pose fix: one RSU's estimate of one bus's pose at one frame's capture time.
+
+The one fix type of the core. The RSU pipeline makes it from a solver's solution
+(`Fix.from_solution`), the bus filter consumes it; `protocol.convert` turns it into the wire
+`protocol.messages.PoseFix` and back. Pure data: no I/O, no Zenoh."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from toptag.solvers import PoseSolution
+
+
+@dataclass
+class Fix:
+    """t_ns: capture time (int ns); x, y (m), yaw (rad) in the world frame; cov: 3x3 covariance of
+    (x, y, yaw); source: the RSU id; seq: the per-source sequence number (the frame's; optional:
+    duplicates are recognised by source and sequence, or by source and capture time); arrival_ns:
+    when the bus received it (optional; feeds only the filter's health report). z (roof height, m),
+    method (solver), tags (tag ids used) and rms_px (reprojection RMS) describe how it was made."""
+    t_ns: int
+    x: float
+    y: float
+    yaw: float
+    cov: np.ndarray
+    source: str = "rsu"
+    seq: int | None = None
+    arrival_ns: int | None = None
+    z: float | None = None
+    method: str | None = None
+    tags: tuple[int, ...] = field(default=())
+    rms_px: float | None = None
+
+    def __post_init__(self):
+        self.t_ns = int(self.t_ns)
+        self.x, self.y, self.yaw = float(self.x), float(self.y), float(self.yaw)
+        self.cov = np.asarray(self.cov, dtype=float).reshape(3, 3) if np.size(self.cov) == 9 else \
+            np.full((3, 3), np.nan)
+        self.source = str(self.source)
+        self.seq = None if self.seq is None else int(self.seq)
+        self.tags = tuple(int(t) for t in self.tags)
+
+    @classmethod
+    def from_solution(cls, solution: PoseSolution, t_ns: int, source: str, seq: int | None = None) -> Fix:
+        """The fix a solver's (ok) solution of the frame captured at t_ns gives."""
+        if not solution.ok:
+            raise ValueError(f"no fix from a failed solution: {solution.error}")
+        return cls(t_ns=t_ns, x=solution.x, y=solution.y, yaw=solution.yaw, cov=solution.covariance,
+                   source=source, seq=seq, z=solution.z, method=solution.method, tags=tuple(solution.tags),
+                   rms_px=float(solution.rms_px))
+
+    @property
+    def key(self) -> tuple:
+        """Canonical processing order: capture time, source, sequence."""
+        return (self.t_ns, self.source, -1 if self.seq is None else self.seq)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(x, y, yaw), the measured part of the filter's state."""
+        return np.array([self.x, self.y, self.yaw])
+
+    def problem(self) -> str | None:
+        """Why this fix cannot be used, or None."""
+        if not all(math.isfinite(v) for v in (self.x, self.y, self.yaw)):
+            return "non-finite pose"
+        c = self.cov
+        if not np.all(np.isfinite(c)):
+            return "non-finite covariance"
+        if np.max(np.abs(c - c.T)) > 1e-9 * max(1.0, np.max(np.abs(c))):
+            return "covariance not symmetric"
+        try:
+            np.linalg.cholesky(c)
+        except np.linalg.LinAlgError:
+            return "covariance not positive definite"
+        return None
+
+    def replace(self, **change) -> Fix:
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        d["cov"] = self.cov.copy()
+        d.update(change)
+        return Fix(**d)
