@@ -112,6 +112,14 @@ def sessions(intersection: str, bus: str = ANY) -> str:
     return _build("sessions", intersection, bus)
 
 
+def every(kind: str) -> str:
+    """Every key of one kind of message (``kind`` as in LAYOUT), and nothing else: a pattern for access
+    control, e.g. every("pose_fix") == "toptag/v1/fix/**"."""
+    if kind not in LAYOUT:
+        raise KeyExprError(f"no kind of message {kind!r} (one of {', '.join(LAYOUT)})")
+    return f"{ROOT}/{LAYOUT[kind][0]}/**"
+
+
 def key_of(msg) -> str:
     """The key a message is published on, from its own ids (ActiveSessions: its responder's key)."""
     t = getattr(msg, "TYPE", None)

@@ -27,6 +27,7 @@ from protocol.transport import (
     subscribe_messages,
 )
 from services.processes import TOPTAG, ProcessGroup, free_port
+from toptag.progress import Progress
 from toptag.units import ms_from_ns
 
 
@@ -76,15 +77,17 @@ def run(frames: int = 150, fps: float = 10.0, progress=print) -> dict:
         token = declare_alive(session, "x1", vehicle.id)
         publish(session, keys.approach("x1", vehicle.id), approach)
         pub = MessagePublisher(session, keys.frame(camera.id), Frame)
-        progress(f"publishing {frames} frames at {fps:g} Hz ...")
         time.sleep(1.0)
         next_t = time.monotonic()
+        bar = Progress(frames, f"publishing frames at {fps:g} Hz")
         for seq in range(frames):
+            bar.update()
             t = time.time_ns()
             pub.put(Frame(rsu_id=camera.id, capture_time_ns=t, seq=seq, encoding="jpeg", width=camera.width,
                           height=camera.height, image=jpegs[seq % len(jpegs)]))
             next_t += 1.0 / fps
             time.sleep(max(0.0, next_t - time.monotonic()))
+        bar.close()
         time.sleep(1.0)
         for h in (sub, pub):
             h.close()

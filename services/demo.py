@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from services.processes import TOPTAG, ProcessGroup, free_port
+from toptag.progress import Progress
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -64,10 +65,13 @@ def main(argv: list[str]) -> int:
                          + client) for veh in scenario.vehicle_paths()]
     sim = group.start("sim", TOPTAG + ["sim", "run", "--scenario", str(scenario_path)] + client)
 
-    t_end = time.monotonic() + args.duration
+    t_start = time.monotonic()
+    t_end = t_start + args.duration
+    bar = Progress(args.duration, "toptag demo", unit=" s")
     exit_code = 0
     try:
         while not stop.wait(args.period) and time.monotonic() < t_end:
+            bar.set(round(time.monotonic() - t_start), note="Ctrl-C stops it and writes the report")
             print(monitor.progress(), flush=True)
             dead = group.dead()
             if dead:
@@ -76,6 +80,7 @@ def main(argv: list[str]) -> int:
                 exit_code = 1
                 break
     finally:
+        bar.close()
         # Buses first (they send Leave), then the sim, the RSUs, and the router last.
         codes = group.stop(buses + [sim] + rsus)
         time.sleep(0.2)

@@ -380,7 +380,8 @@ def test_the_filter_takes_only_core_fixes():
 def test_fusion_study_writes_results_in_the_agreed_shape(tmp_path):
     from sim.studies import fusion
 
-    res = fusion.run(tmp_path, [0, 200], jitter_ms=30, seed=1, runs=2, plots=False, log=lambda *_: None)
+    res = fusion.run(tmp_path, [0, 200], jitter_ms=30, seed=1, runs=2, plots=False, log=lambda *_: None,
+                     progress=False)
     saved = __import__("json").loads((tmp_path / "results.json").read_text())
     for key in ("0", "200"):
         r = saved["latency_ms"][key]

@@ -19,6 +19,7 @@ from sim.studies.paper_models import (
 )
 from toptag.detection import TagObservation
 from toptag.geometry import vehicle_to_world
+from toptag.progress import Progress
 from toptag.solvers import SIGMA_H_DEFAULT, Limits, position_crlb, solve
 from toptag.solvers.level import edge_whitener
 
@@ -183,7 +184,7 @@ def test_study_level_solver_is_the_cores_at_the_bound():
 
 def test_progress_bar_draws_to_its_stream():
     buf = io.StringIO()
-    bar = paper.Progress(4, "x", stream=buf)
+    bar = Progress(4, "x", stream=buf)  # the one progress bar of every long job (toptag.progress)
     for _ in range(4):
         bar.update()
     bar.close()

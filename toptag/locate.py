@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 from toptag.camera import Camera
 from toptag.detection import DetectorSettings

@@ -11,9 +11,11 @@ import argparse
 import json
 import os
 from collections.abc import Iterable, Sequence
-from typing import Any
+from pathlib import Path
+from typing import Any, Literal
 
 import zenoh
+from pydantic import BaseModel, ConfigDict
 
 from toptag.errors import SetupError
 
@@ -180,3 +182,33 @@ def zenoh_config_from_args(args: argparse.Namespace, *, mode: str | None = None,
             multicast = False  # toptag default, unless the file turns it on
     return zenoh_config(mode=the_mode, connect=connect, listen=listen, multicast_scouting=multicast,
                         config_file=config_file)
+
+
+class ZenohSettings(BaseModel):
+    """The [zenoh] table of a service's settings file: the same options as the command line's
+    (--zenoh-mode, --connect, --listen, --multicast-scouting, --zenoh-config). A relative config_file
+    is relative to the settings file."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    mode: Literal["peer", "client", "router"] | None = None
+    connect: list[str] | None = None
+    listen: list[str] | None = None
+    multicast_scouting: bool | None = None
+    config_file: str | None = None
+
+
+def apply_zenoh_settings(args: argparse.Namespace, zs: ZenohSettings, base_dir: Path | None = None) -> None:
+    """Fill the Zenoh options the command line left unset from a settings file's [zenoh] table: the
+    command line overrides the file, the file overrides the environment."""
+    if args.zenoh_mode is None and zs.mode is not None:
+        args.zenoh_mode = zs.mode
+    if args.connect is None and zs.connect is not None:
+        args.connect = list(zs.connect)
+    if args.listen is None and zs.listen is not None:
+        args.listen = list(zs.listen)
+    if args.multicast_scouting is None and zs.multicast_scouting is not None:
+        args.multicast_scouting = zs.multicast_scouting
+    if args.zenoh_config is None and zs.config_file is not None:
+        f = Path(zs.config_file)
+        args.zenoh_config = str(f if f.is_absolute() or base_dir is None else base_dir / f)

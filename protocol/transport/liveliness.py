@@ -18,7 +18,7 @@ import zenoh
 from protocol import keys
 from protocol.transport.counters import HANDLER_ERROR, MessageCounters
 
-log = logging.getLogger("toptag.zenoh")
+log = logging.getLogger(__name__)
 
 def declare_alive(session: zenoh.Session, intersection: str, bus: str) -> zenoh.LivelinessToken:
     """The bus's liveliness token for its session at an intersection; undeclare() it (or close the

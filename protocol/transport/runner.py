@@ -3,6 +3,9 @@ SIGINT/SIGTERM, a clean close, and the exit code.
 
     run_service(prog, args, load, build, describe)
 
+- the settings file (--config FILE, TOML or YAML) is read into the service's ``settings`` model (a
+  ServiceSettings: a [zenoh] table and the service's own) as ``args.settings``; its [zenoh] table fills
+  the Zenoh options the command line left unset;
 - load() reads and checks the inputs (a bad file raises toptag.errors.InputError: one line, exit 2);
 - the session opens from the Zenoh options (SetupError: one line, exit 1);
 - build(session, inputs) makes the service; SIGINT/SIGTERM call its stop(); run(duration) runs it;
@@ -17,16 +20,47 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any, Protocol
+from pathlib import Path
+from typing import Any, Protocol, TypeVar
 
 import zenoh
+from pydantic import BaseModel, ConfigDict
 
-from protocol.transport.config import add_zenoh_arguments, config_summary, open_session, zenoh_config_from_args
+from protocol.transport.config import (
+    ZenohSettings,
+    add_zenoh_arguments,
+    apply_zenoh_settings,
+    config_summary,
+    open_session,
+    zenoh_config_from_args,
+)
 from toptag.errors import EXIT_FAILURE, EXIT_OK, InputError, ToptagError, report
+from toptag.settings import load_settings
 
 log = logging.getLogger(__name__)
 
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+class ServiceSettings(BaseModel):
+    """A service's settings file: its [zenoh] table; services add their own tables."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    zenoh: ZenohSettings = ZenohSettings()
+
+
+S = TypeVar("S", bound=ServiceSettings)
+
+
+def load_service_settings(args: argparse.Namespace, model: type[S] = ServiceSettings) -> S:
+    """``model`` from --config FILE (defaults without one); its [zenoh] table fills the unset options."""
+    path = getattr(args, "config", None)
+    if path is None:
+        return model()
+    settings = load_settings(path, model)
+    apply_zenoh_settings(args, settings.zenoh, Path(path).parent)
+    return settings
 
 
 class Service(Protocol):
@@ -36,7 +70,10 @@ class Service(Protocol):
 
 
 def add_service_arguments(p: argparse.ArgumentParser, *, default_mode: str = "peer", duration: bool = True) -> None:
-    """--duration, --log-level and the Zenoh options of add_zenoh_arguments."""
+    """--config, --duration, --log-level and the Zenoh options of add_zenoh_arguments."""
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="settings file (TOML, or YAML with the yaml extra): a [zenoh] table and the service's "
+                        "own; options given here override it")
     if duration:
         p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
@@ -52,6 +89,7 @@ def setup_logging(level: str) -> None:
 
 def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
                 build: Callable[[zenoh.Session, Any], Service], describe: Callable[[Any], str], *,
+                settings: type[ServiceSettings] = ServiceSettings,
                 zenoh_config: Callable[[argparse.Namespace, Any], zenoh.Config] | None = None) -> int:
     """Run one service process (see the module docstring). ``zenoh_config(args, inputs)`` builds the
     session's config when the default (the service's Zenoh options) is not enough (the router)."""
@@ -70,6 +108,7 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
         previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         try:
+            args.settings = load_service_settings(args, settings)
             inputs = load()
             if stopping.is_set():
                 return EXIT_OK

@@ -14,7 +14,7 @@ from protocol.messages import ActiveSessions, Approach
 from protocol.transport.counters import ACCEPTED, REJECTED, MessageCounters
 from protocol.transport.publishing import encoding_for
 
-log = logging.getLogger("toptag.zenoh")
+log = logging.getLogger(__name__)
 
 def serve_session(session: zenoh.Session, approach: Approach | Callable[[], Approach | None], *,
                   responder_id: str | None = None, logger: logging.Logger | None = None) -> zenoh.Queryable:

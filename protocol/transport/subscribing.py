@@ -24,7 +24,7 @@ from protocol.codec import ProtocolError
 from protocol.messages import Frame, Message
 from protocol.transport.counters import ACCEPTED, HANDLER_ERROR, IGNORED, REJECTED, SKIPPED, LogLimiter, MessageCounters
 
-log = logging.getLogger("toptag.zenoh")
+log = logging.getLogger(__name__)
 
 M = TypeVar("M", bound=Message)
 

@@ -35,7 +35,7 @@ from protocol.transport import (
     serve_session,
     subscribe_messages,
 )
-from protocol.transport.runner import add_service_arguments, run_service
+from protocol.transport.runner import ServiceSettings, add_service_arguments, run_service
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.fusion.presence import IntersectionPresence
 from toptag.site import IntersectionSpec, MapFile
@@ -46,6 +46,12 @@ log = logging.getLogger(__name__)
 
 IMU_GAP_RESET_S = 1.0  # without IMU for this long the state cannot be propagated: start afresh
 APPROACH_REPEAT_S = 1.0  # one-shot messages can be lost when routes are new: repeat the announcement
+
+
+class BusSettings(ServiceSettings):
+    """`toptag bus --config FILE`: [zenoh] and [filter] (toptag.fusion.filter.FilterConfig)."""
+
+    filter: FilterConfig = FilterConfig()
 
 
 class BusAgent:
@@ -214,5 +220,7 @@ def main(argv: list[str]) -> int:
         return vehicle, MapFile.load(args.map)
 
     return run_service("bus", args, load,
-                       lambda session, inputs: BusAgent(session, *inputs, fused_hz=args.fused_hz),
-                       lambda inputs: f"bus {inputs[0].id} ({len(inputs[1].intersections)} intersections known)")
+                       lambda session, inputs: BusAgent(session, *inputs, fused_hz=args.fused_hz,
+                                                        filter_config=args.settings.filter),
+                       lambda inputs: f"bus {inputs[0].id} ({len(inputs[1].intersections)} intersections known)",
+                       settings=BusSettings)

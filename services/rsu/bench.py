@@ -16,6 +16,7 @@ from sim.render import PlacedVehicle, render
 from sim.sampling import visible_tags
 from sim.scene import bundled_vehicle, rsu_camera
 from toptag.detection import DetectorSettings
+from toptag.progress import Progress
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 
 
@@ -49,9 +50,12 @@ def simulated_pass(width: int, height: int, frames: int, fps: float, seed: int =
     return camera, bus, out
 
 
-def _run(pipeline: RsuPipeline, vehicle_id: str, frames) -> dict:
+def _run(pipeline: RsuPipeline, vehicle_id: str, frames, label: str, show: bool) -> dict:
     times, acquire_times, solve_times, errors, found, visible = [], [], [], [], 0, 0
+    bar = Progress(len(frames), label) if show else None
     for t_ns, img, truth, vis in frames:
+        if bar:
+            bar.update()
         t0 = time.perf_counter()
         res = pipeline.process(img, t_ns)
         ms = (time.perf_counter() - t0) * 1e3
@@ -63,6 +67,8 @@ def _run(pipeline: RsuPipeline, vehicle_id: str, frames) -> dict:
         if vis and sol is not None and sol.ok:
             found += 1
             errors.append(np.hypot(sol.x - truth[0], sol.y - truth[1]))
+    if bar:
+        bar.close()
     return {"ms": times, "acquire_ms": acquire_times, "solve_ms": solve_times, "rate": found / max(1, visible),
             "pos_rms": float(np.sqrt(np.mean(np.square(errors)))) if errors else None, "visible": visible}
 
@@ -80,12 +86,10 @@ def run(width: int = 3200, height: int = 2400, frames: int = 60, fps: float = 10
     acquire = RsuPipeline(camera, PipelineSettings(tracking=False))
     for p in (full, tracked, acquire):
         p.add_vehicle(bus)
-    say("full-frame detection (quad_decimate 1, 2 threads) ...")
-    f = _run(full, bus.id, pass_frames)
-    say("tracked pipeline ...")
-    t = _run(tracked, bus.id, pass_frames)
-    say("acquisition only (pyramid search on every frame) ...")
-    a = _run(acquire, bus.id, pass_frames)
+    show = progress is not None
+    f = _run(full, bus.id, pass_frames, "full-frame detection (quad_decimate 1, 2 threads)", show)
+    t = _run(tracked, bus.id, pass_frames, "tracked pipeline", show)
+    a = _run(acquire, bus.id, pass_frames, "acquisition only (pyramid search on every frame)", show)
     pct = lambda xs, q: float(np.percentile(xs, q)) if xs else None  # noqa: E731
     return {
         "width": width, "height": height, "frames": frames, "frames_with_tags_in_view": t["visible"],

@@ -30,13 +30,19 @@ from protocol.transport import (
     subscribe_messages,
     watch_buses,
 )
-from protocol.transport.runner import add_service_arguments, run_service
+from protocol.transport.runner import ServiceSettings, add_service_arguments, run_service
 from toptag.camera import Camera
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.solvers import METHODS
 from toptag.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
+
+
+class RsuSettings(ServiceSettings):
+    """`toptag rsu --config FILE`: [zenoh] and [pipeline] (toptag.rsu.pipeline.PipelineSettings)."""
+
+    pipeline: PipelineSettings = PipelineSettings()
 
 
 @dataclass
@@ -238,7 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag rsu", description=__doc__.split("\n\n")[0])
     p.add_argument("--camera", required=True, help="camera calibration JSON; its id is the RSU id")
     p.add_argument("--intersection", required=True, help="intersection id (as in the map file)")
-    p.add_argument("--method", choices=METHODS, default=PipelineSettings().method)
+    p.add_argument("--method", choices=METHODS, default=None,
+                   help=f"solver (default: the settings file's pipeline.method, else {PipelineSettings().method})")
     add_service_arguments(p)
     return p
 
@@ -246,13 +253,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
 
-    def load() -> Camera:
+    def load() -> tuple[Camera, PipelineSettings]:
         camera = Camera.load(args.camera)
         keys.frame(camera.id)  # the camera id must be usable as an RSU id on the wire
         keys.approach(args.intersection, "x")
-        return camera
+        pipeline = args.settings.pipeline
+        if args.method is not None:  # the command line overrides the settings file
+            pipeline = pipeline.model_copy(update={"method": args.method})
+        return camera, pipeline
 
     return run_service(
         "rsu", args, load,
-        lambda session, camera: RsuService(session, camera, args.intersection, PipelineSettings(method=args.method)),
-        lambda camera: f"RSU {camera.id} at intersection {args.intersection} ({camera.width}x{camera.height})")
+        lambda session, inputs: RsuService(session, inputs[0], args.intersection, inputs[1]),
+        lambda inputs: f"RSU {inputs[0].id} at intersection {args.intersection} "
+                       f"({inputs[0].width}x{inputs[0].height}, {inputs[1].method} solver)",
+        settings=RsuSettings)

@@ -36,6 +36,7 @@ from toptag.errors import InputError, report
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.geometry import wrap_angle
 from toptag.limits import BUS_MAX_SPEED_MPS
+from toptag.progress import Progress
 from toptag.units import kmh_from_mps, ns_from_ms, ns_from_s, s_from_ns
 
 DEFAULT_LATENCIES_MS = (0, 50, 100, 200, 300)
@@ -144,7 +145,7 @@ def run_once(traj: Trajectory, imu, fixes: list[Fix], latency_ms: float, jitter_
     arrivals = sorted(((f.t_ns + ns_from_ms(d), f) for f, d in zip(fixes, delays)), key=lambda a: a[0])
     naive_arr = [(a, f.replace(t_ns=a)) for a, f in arrivals]
     fused = BusFilter(cfg)
-    naive = BusFilter(FilterConfig(**{**asdict(cfg), "gate_probability": None}))
+    naive = BusFilter(cfg.model_copy(update={"gate_probability": None}))
     filters, arr = [fused, naive], [arrivals, naive_arr]
     st0 = traj.state_at(0.0)
     dr = None
@@ -184,7 +185,8 @@ def _rms(v):
 def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, seed: int = 0, runs: int = 16,
         n_rsu: int = 4, route: str = "left", speed: float = BUS_MAX_SPEED_MPS, settle_s: float = 1.5,
         imu_model: ImuModel | None = None, fix_model: FixErrorModel | None = None,
-        config: FilterConfig | None = None, fix_source=None, plots: bool = True, log=print) -> dict:
+        config: FilterConfig | None = None, fix_source=None, plots: bool = True, log=print,
+        progress: bool = True) -> dict:
     """The study. Returns the results dict also written to out_dir/results.json."""
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -206,6 +208,7 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
         inputs.append((imu, fixes, g_lat))
     dead_cache: list[np.ndarray | None] = [None] * runs
     results: dict = {"latency_ms": {}}
+    bar = Progress(len(latencies) * runs, "toptag eval fusion") if progress else None
     for lat in latencies:
         t0 = time.perf_counter()
         for r, (imu, fixes, g_lat) in enumerate(inputs):
@@ -213,6 +216,8 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
             tr = run_once(traj, imu, fixes, lat, jitter_ms, rng, cfg, dead_cache[r])
             dead_cache[r] = tr.dead
             per_lat[lat].append(tr)
+            if bar:
+                bar.update(note=f"{lat:g} ms")
         res = _summarise(per_lat[lat], inputs, settle_s)
         results["latency_ms"][_key(lat)] = res
         log(f"latency {lat:5.0f} ms  jitter {jitter_ms:.0f} ms  runs {runs}: "
@@ -220,6 +225,8 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
             f"dead-reckoning {res['dead_reckoning_pos_rms_m'] * 100:7.2f} cm"
             f"  NEES {res['nees_mean']:.2f} (band {res['nees_band_95'][0]:.2f}-{res['nees_band_95'][1]:.2f})"
             f"  [{time.perf_counter() - t0:.1f} s]")
+    if bar:
+        bar.close()
     zero = results["latency_ms"].get(_key(min(latencies)))
     for k, res in results["latency_ms"].items():
         res["fused_ratio_to_min_latency"] = res["fused_pos_rms_m"] / zero["fused_pos_rms_m"]
@@ -238,7 +245,7 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
         "jitter_ms": jitter_ms, "delay_model": "max(0, latency + N(0, jitter))", "n_rsu": n_rsu,
         "rsus": [m.id for m in rsu_mounts()[:n_rsu]], "settle_s": settle_s, "output_hz": 50,
         "fix_model": "live (fix_source)" if fix_source else asdict(fix_model), "imu_model": asdict(imu_model),
-        "filter": {k: v for k, v in asdict(cfg).items()},
+        "filter": cfg.model_dump(),
         "naive": "same EKF, each fix applied at its arrival time as if current, no gate",
         "dead_reckoning": "same EKF from the true initial pose, IMU/odometry only",
         "nees": "3-dof (x, y, yaw); band = 95% chi-square band of the run-averaged NEES at one time",

@@ -34,10 +34,10 @@ from __future__ import annotations
 
 import math
 from bisect import bisect_left, bisect_right
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from toptag.fix import Fix
 from toptag.fusion.outcomes import FixOutcome, FixRecord, count_outcomes
@@ -73,10 +73,13 @@ def chi2_3dof(p: float) -> float:
     return float(chi2.ppf(p, 3))
 
 
-@dataclass(frozen=True)
-class FilterConfig:
-    """Tuning. Noise densities are continuous time; sigmas are per sample."""
-    buffer_s: float = 2.0  # history kept for delayed fixes (>= 1 s)
+class FilterConfig(BaseModel):
+    """Tuning (the [filter] table of `toptag bus --config`). Noise densities are continuous time; sigmas
+    are per sample."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    buffer_s: float = Field(default=2.0, ge=1.0)  # history kept for delayed fixes (>= 1 s)
     # process noise
     pos_noise_density: float = 1e-3  # m/sqrt(s): unmodelled slip of the unicycle model
     yaw_noise_density: float = 2e-4  # rad/sqrt(s): unmodelled yaw motion
@@ -114,10 +117,6 @@ class FilterConfig:
     degraded_pos_sigma: float = 0.5
     lost_after_s: float = 10.0
     lost_pos_sigma: float = 2.0
-
-    def __post_init__(self):
-        if self.buffer_s < 1.0:
-            raise ValueError("buffer_s must cover at least 1 s")
 
     @property
     def gate_threshold(self) -> float:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from toptag.camera import Camera
 from toptag.detection import (
@@ -35,16 +35,18 @@ from toptag.rsu.regions import (
     tag_region,
 )
 from toptag.rsu.tracking import SPEED_MARGIN, TrackSettings, VehicleTrack
-from toptag.solvers import PoseSolution, solve
+from toptag.solvers import PoseSolution, canonical_method, solve
 from toptag.units import s_from_ns
 from toptag.vehicle import Vehicle
 
 
 class PipelineSettings(BaseModel):
+    """The RSU's per-frame work (the [pipeline] table of `toptag rsu --config`)."""
+
     model_config = ConfigDict(extra="forbid")
 
     method: str = "level"  # toptag.solvers: bas | hopt | sopt | level (level roof, edge-noise weighting)
-    weighting: str = "principled"
+    weighting: Literal["paper", "principled"] = "principled"
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     tracking: bool = True
     # Acquisition: "pyramid" searches each row band at the coarsest level that still resolves a tag at
@@ -67,7 +69,12 @@ class PipelineSettings(BaseModel):
     # acquisition waits; trusted for this long, at 3 sigma plus the distance it may have driven since.
     coarse_max_age_s: float = 2.5
     crop_pad_px: float = 6.0
-    workers: int = 2
+    workers: int = Field(default=2, ge=1)
+
+    @field_validator("method")
+    @classmethod
+    def _known_method(cls, v: str) -> str:
+        return canonical_method(v)
 
 
 @dataclass(frozen=True)
