@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 import threading
+import time
 
 import zenoh
 
@@ -47,7 +48,11 @@ class Router:
                  session.zid(), config_summary(conf))
 
     def run(self, duration: float | None = None) -> None:
-        self._stop.wait(duration)
+        t_end = None if duration is None else time.monotonic() + duration
+        # Wake up twice a second: a signal that Zenoh's threads receive reaches the Python handler only
+        # when the main thread runs, never while it blocks without a timeout.
+        while not self._stop.wait(0.5) and (t_end is None or time.monotonic() < t_end):
+            pass
 
     def stop(self) -> None:
         self._stop.set()

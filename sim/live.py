@@ -194,6 +194,13 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
             next_k[r] += 1
     finally:
         stop.set()
+        # Ticks that came due while the loop was behind and are not rendered now: skipped, and counted.
+        t_stop = time.time_ns() if end is None else min(time.time_ns(), end)
+        for r in range(n):
+            due = world.frame_index_from(r, t_stop)
+            if due > next_k[r]:
+                stats.skipped[world.rsu_ids[r]] += due - next_k[r]
+                next_k[r] = due
         sensors.join(timeout=2.0)
         stats.all_render_ms.extend(stats.render_ms)
         ms = np.asarray(stats.all_render_ms) if stats.all_render_ms else np.zeros(1)

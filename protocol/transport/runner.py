@@ -64,6 +64,10 @@ def load_service_settings(args: argparse.Namespace, model: type[S] = ServiceSett
 
 
 class Service(Protocol):
+    """run() works until stop() or ``duration`` s and must not block for long without a timeout: the
+    signal handlers run in the main thread, and a signal delivered to one of Zenoh's threads reaches them
+    only when the main thread wakes up."""
+
     def run(self, duration: float | None) -> None: ...
     def stop(self) -> None: ...
     def close(self) -> None: ...
