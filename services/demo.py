@@ -33,14 +33,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     from sim.scenario import bundled_scenario_path, load_scenario
-    from toptag.inputs import InputError
+    from toptag.errors import InputError, report
 
     scenario_path = Path(args.scenario) if args.scenario else bundled_scenario_path()
     try:
         scenario = load_scenario(scenario_path)
     except InputError as e:
-        print(f"toptag demo: {e}", file=sys.stderr)
-        return 2
+        return report("demo", e)
     log_dir = Path(args.logs) if args.logs else Path(tempfile.mkdtemp(prefix="toptag-demo-"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     client = ["--zenoh-mode", "client", "--connect", endpoint]
