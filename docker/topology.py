@@ -3,8 +3,8 @@ bare hosts.
 
     python docker/topology.py [--router-host HOST]    # print every service's bare-host command
 
-docker/compose.yaml is JSON (JSON is YAML, so docker compose reads it; here json.loads does, no YAML
-library). For each service this module yields the toptag argv and the environment compose gives it
+docker/compose.yaml is read with PyYAML (the test extra; merge keys `<<` resolved as compose resolves
+them). For each service this module yields the toptag argv and the environment compose gives it
 (``environment`` over ``env_file``, as compose does), and maps the paths it names inside the image to the
 repository: /site/... is toptag/data/demo/... (the Dockerfile's COPY lines say so), a bind-mounted file is
 its file next to the compose file. The router, an eclipse/zenoh container running ``zenohd -c FILE``,
@@ -16,7 +16,6 @@ environments, each service in its own network namespace.
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import shlex
 import sys
@@ -42,24 +41,25 @@ class Service:
     command: list[str]
     env: dict[str, str]
     volumes: dict[str, Path] = field(default_factory=dict)  # path in the container -> host path
-    build: dict | None = None
-
-    @property
-    def is_toptag(self) -> bool:
-        """Built from docker/Dockerfile: its command is a toptag command line (the entry point)."""
-        return self.build is not None
+    named_volumes: dict[str, str] = field(default_factory=dict)  # path in the container -> volume name
+    build: dict | None = None  # on the one service that builds the image
+    is_toptag: bool = False  # runs the image built from docker/Dockerfile: its command is a toptag command line
 
 
 # ---- reading the files -------------------------------------------------------------------------
 
 def load_compose(path: str | Path = COMPOSE) -> dict:
-    text = Path(path).read_text()
-    if "\t" in text:
-        raise TopologyError(f"{path}: tab characters (YAML forbids them in indentation)")
     try:
-        data = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise TopologyError(f"{path}: not JSON (line {e.lineno}: {e.msg})") from None
+        import yaml
+    except ImportError:
+        raise TopologyError("reading a compose file needs PyYAML: pip install pyyaml") from None
+    text = Path(path).read_text()
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}: " if mark is not None else ""
+        raise TopologyError(f"{path}: not YAML ({where}{getattr(e, 'problem', None) or e})") from None
     if not isinstance(data, dict) or not isinstance(data.get("services"), dict) or not data["services"]:
         raise TopologyError(f"{path}: no services")
     unknown = set(data) - {"name", "services", "networks", "volumes"} - {k for k in data if k.startswith("x-")}
@@ -94,16 +94,18 @@ def image_layout(dockerfile: str | Path = DOCKERFILE) -> dict[str, Path]:
     return layout
 
 
-def _volumes(svc_name: str, spec: dict, base: Path) -> dict[str, Path]:
-    out = {}
+def _volumes(svc_name: str, spec: dict, base: Path) -> tuple[dict[str, Path], dict[str, str]]:
+    """(bind mounts {container path: host path}, named volumes {container path: volume name})."""
+    binds, named = {}, {}
     for v in spec.get("volumes", []):
         if not isinstance(v, str) or v.count(":") not in (1, 2):
             raise TopologyError(f"service {svc_name}: volume {v!r} is not HOST:CONTAINER[:MODE]")
         host, target = v.split(":")[:2]
-        if not host.startswith((".", "/")):
-            continue  # a named volume: no host file
-        out[target] = (base / host).resolve()
-    return out
+        if host.startswith((".", "/")):
+            binds[target] = (base / host).resolve()
+        else:
+            named[target] = host  # a named volume: no host file
+    return binds, named
 
 
 def _merge(base: dict, override: dict) -> dict:
@@ -143,6 +145,7 @@ def services(*paths: str | Path) -> list[Service]:
         for name, spec in load_compose(path)["services"].items():
             specs[name] = _merge(specs.get(name, {}), spec)
     base = paths[0].parent
+    built = {str(spec.get("image", "")) for spec in specs.values() if spec.get("build") is not None}
     out = []
     for name, spec in specs.items():
         command = spec.get("command", [])
@@ -153,8 +156,10 @@ def services(*paths: str | Path) -> list[Service]:
         for f in [files] if isinstance(files, str) else files:
             env.update(read_env_file(base / f))
         env.update({k: str(v) for k, v in _env_dict(spec.get("environment", {})).items()})
+        binds, named = _volumes(name, spec, base)
         out.append(Service(name=name, image=str(spec.get("image", "")), command=list(command), env=env,
-                           volumes=_volumes(name, spec, base), build=spec.get("build")))
+                           volumes=binds, named_volumes=named, build=spec.get("build"),
+                           is_toptag=str(spec.get("image", "")) in built))
     return out
 
 

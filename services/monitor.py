@@ -95,6 +95,7 @@ class BusScore:
 class Monitor:
     def __init__(self, session):
         self.started = time.monotonic()
+        self.first_message: float | None = None  # monotonic time of the first message about a bus
         self.counters = MessageCounters()
         self._lock = threading.Lock()
         self.status: dict[str, RsuStatus] = {}
@@ -123,11 +124,13 @@ class Monitor:
 
     def _on_truth(self, m: GroundTruth) -> None:
         with self._lock:
+            self._heard()
             self.truth[m.bus_id].add(m)
 
     def _on_fix(self, m: PoseFix) -> None:
         arrival = time.time_ns()
         with self._lock:
+            self._heard()
             b = self.buses[m.bus_id]
             b.fixes += 1
             b.fixes_by_rsu[m.rsu_id] += 1
@@ -140,10 +143,15 @@ class Monitor:
 
     def _on_fused(self, m: FusedPose) -> None:
         with self._lock:
+            self._heard()
             b = self.buses[m.bus_id]
             b.fused += 1
             b.fused_status = m.health.status
             b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status))
+
+    def _heard(self) -> None:
+        if self.first_message is None:
+            self.first_message = time.monotonic()
 
     def _score(self) -> None:
         """Score the fixes and fused poses whose time the truth now covers; drop those it never will."""
@@ -243,9 +251,15 @@ class MonitorService:
         self._stop = threading.Event()
 
     def run(self, duration: float | None = None) -> None:
-        t_end = None if duration is None else time.monotonic() + duration
-        while not self._stop.wait(self.period) and (t_end is None or time.monotonic() < t_end):
-            print(self.monitor.progress(), flush=True)
+        """Until stop(), or ``duration`` s after the first message about a bus (see --duration)."""
+        last_print = time.monotonic()
+        while not self._stop.wait(min(self.period, 0.5)):
+            first = self.monitor.first_message
+            if duration is not None and first is not None and time.monotonic() >= first + duration:
+                return
+            if time.monotonic() - last_print >= self.period:
+                print(self.monitor.progress(), flush=True)
+                last_print = time.monotonic()
 
     def stop(self) -> None:
         self._stop.set()
@@ -258,9 +272,13 @@ class MonitorService:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag monitor", description=__doc__.split("\n\n")[0])
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop S seconds after the first message about a bus (ground truth, fix or fused pose), "
+                        "so a monitor started before the others watches the buses' traffic, not their "
+                        "start-up; default: until stopped")
     p.add_argument("--period", type=float, default=2.0, help="seconds between progress tables")
     p.add_argument("--report", default=None, help="write the summary JSON here at the end")
-    add_service_arguments(p)
+    add_service_arguments(p, duration=False)
     return p
 
 

@@ -69,16 +69,19 @@ def layout():
 
 # ---- the compose file and the image, statically -------------------------------------------------
 
-def test_compose_file_is_json_and_has_the_demo_services(compose):
-    text = (DOCKER / "compose.yaml").read_text()
-    assert json.loads(text)["services"]  # JSON: valid YAML 1.2 for docker compose, json.loads here
+def test_compose_file_is_yaml_with_the_demo_services_on_one_image(compose):
+    import yaml
+
+    data = yaml.safe_load((DOCKER / "compose.yaml").read_text())
+    assert "name" not in data, "compose v1 (Debian's docker-compose 1.29) rejects a top-level name: use -p"
     assert set(compose) == SERVICES
     toptag = [s for s in compose.values() if s.is_toptag]
     assert {s.name for s in toptag} == SERVICES - {"router"}
-    for s in toptag:  # one image, built once from docker/Dockerfile with the repository as context
-        assert s.build == {"context": "..", "dockerfile": "docker/Dockerfile"}, s.name
-        assert s.image == toptag[0].image
-        assert (DOCKER / s.build["context"] / s.build["dockerfile"]).resolve() == topology.DOCKERFILE
+    builders = [s for s in compose.values() if s.build is not None]
+    # One image, built once from docker/Dockerfile with the repository as context, run by every service.
+    assert len(builders) == 1 and builders[0].build == {"context": "..", "dockerfile": "docker/Dockerfile"}
+    assert (DOCKER / builders[0].build["context"] / builders[0].build["dockerfile"]).resolve() == topology.DOCKERFILE
+    assert {s.image for s in toptag} == {builders[0].image}
 
 
 def test_every_service_is_a_zenoh_client_of_the_router_without_multicast(compose):
@@ -117,7 +120,8 @@ def test_router_is_the_official_image_with_the_config_from_docker_dir(compose):
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     spec = topology.load_compose()["services"]["router"]
-    assert spec["ports"] == ["7447:7447"]
+    # published on this host's loopback only unless TOPTAG_ROUTER_PUBLISH says otherwise
+    assert spec["ports"] == ["${TOPTAG_ROUTER_PUBLISH:-127.0.0.1:7447}:7447"]
     # toptag router takes the same file (the bare-host router of the netns test)
     argv = topology.bare_argv(r)
     assert argv == ["router", "--zenoh-config", str(conf_file)]
@@ -173,7 +177,7 @@ def test_dockerfile_installs_the_project_with_toptag_as_entry_point():
 
     text = topology.DOCKERFILE.read_text()
     lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
-    assert lines[0] == "FROM python:3.11-slim"
+    assert lines[:2] == ["ARG PYTHON_IMAGE=python:3.11-slim", "FROM ${PYTHON_IMAGE}"]  # official by default
     assert lines[-2] == 'ENTRYPOINT ["toptag"]'
     installs = [ln for ln in lines if ln.startswith("RUN pip install")]
     assert installs and all(" -e" not in ln and "--editable" not in ln for ln in installs)
@@ -184,8 +188,13 @@ def test_dockerfile_installs_the_project_with_toptag_as_entry_point():
     packages = {p.rstrip("*") for p in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]}
     assert {"pyproject.toml"} | packages <= copies
     assert pyproject["project"]["scripts"]["toptag"] == "toptag.cli:main"
-    ignored = (DOCKER / "Dockerfile.dockerignore").read_text().split()
-    assert ".venv" in ignored and ".git" in ignored
+    # The root .dockerignore (both builders read it) is an allow-list: everything out, then exactly what
+    # the Dockerfile copies back in; a .venv, .git, outputs or certificates never enter the context.
+    patterns = [ln.strip() for ln in (REPO / ".dockerignore").read_text().splitlines()
+                if ln.strip() and not ln.startswith("#")]
+    assert patterns[0] == "*"
+    assert {p[1:] for p in patterns if p.startswith("!")} == {"pyproject.toml"} | packages
+    assert not (DOCKER / "Dockerfile.dockerignore").exists(), "one ignore file, at the root"
 
 
 def test_topology_prints_bare_host_commands():
@@ -199,10 +208,8 @@ def test_topology_prints_bare_host_commands():
 
 
 def test_secured_variant_names_the_files_toptag_certs_writes(tmp_path, compose):
-    """docker/compose.secure.yaml (mutual TLS, access control): run the `toptag certs` command its notes
-    give, then every service's zenoh config (fragment + environment) builds and says who it is."""
-    import shlex
-
+    """docker/compose.secure.yaml (mutual TLS, access control): run its one-shot `certs` service's command,
+    then every service's zenoh config (fragment + environment) builds and says who it is."""
     import zenoh
 
     from protocol.transport import zenoh_config_from_args
@@ -210,19 +217,25 @@ def test_secured_variant_names_the_files_toptag_certs_writes(tmp_path, compose):
     if shutil.which("openssl") is None:
         pytest.skip("toptag certs needs the openssl command")
     secure = DOCKER / "compose.secure.yaml"
-    notes = topology.load_compose(secure)["x-notes"]
-    argv = shlex.split(next(n for n in notes if "toptag certs" in n).split("toptag", 1)[1])
-    argv[argv.index("--out") + 1] = str(tmp_path / "certs")
-    assert argv[0] == "certs"
-    p = subprocess.run([sys.executable, "-m", "toptag", *argv, "--quiet"], capture_output=True, text=True, timeout=60, check=False)
-    assert p.returncode == 0, p.stderr
     merged = {s.name: s for s in topology.services(topology.COMPOSE, secure)}
-    assert set(merged) == set(compose)
+    assert set(merged) == set(compose) | {"certs"}
+    certs = merged.pop("certs")
+    assert certs.is_toptag and certs.command[:3] == ["certs", "--out", "/certs"]
+    assert certs.named_volumes == {"/certs": "certs"}  # the keys live in a volume, never on the host
+    assert topology.load_compose(secure)["volumes"] == {"certs": {}}
+    argv = list(certs.command)
+    argv[argv.index("--out") + 1] = str(tmp_path / "certs")
+    p = subprocess.run([sys.executable, "-m", "toptag", *argv], capture_output=True, text=True, timeout=60,
+                       check=False)
+    assert p.returncode == 0 and p.stdout == "", p.stderr  # --quiet
     roles = {"rsu": "rsu", "bus": "bus", "sim": "sim", "monitor": "monitor"}
     for s in merged.values():
-        assert s.volumes["/certs"] == DOCKER / "certs"
+        assert s.named_volumes == {"/certs": "certs"}, s.name
+        assert topology.load_compose(secure)["services"][s.name]["volumes"] == ["certs:/certs:ro"], s.name
         s.volumes["/certs"] = tmp_path / "certs"  # where this test wrote them
         if not s.is_toptag:
+            assert topology.load_compose(secure)["services"]["router"]["depends_on"] == \
+                {"certs": {"condition": "service_completed_successfully"}}
             conf_file = topology.host_path(s.command[1], s)
             conf = zenoh.Config.from_file(str(conf_file))
             assert json.loads(conf.get_json("listen/endpoints")) == ["tls/0.0.0.0:7447"]
@@ -241,7 +254,6 @@ def test_secured_variant_names_the_files_toptag_certs_writes(tmp_path, compose):
         assert json.loads(conf.get_json("connect/endpoints")) == ["tls/router:7447"]
         assert json.loads(conf.get_json("transport/link/protocols")) == ["tls"]
         assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
-    assert "docker/certs/" in (REPO / ".gitignore").read_text().split()
 
 
 # ---- separate hosts: network namespaces -----------------------------------------------------------

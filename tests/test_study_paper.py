@@ -190,3 +190,18 @@ def test_progress_bar_draws_to_its_stream():
     bar.close()
     text = buf.getvalue()
     assert "x [" in text and "4/4" in text and "100%" in text
+
+
+@pytest.mark.parametrize("study", ["paper", "fusion"])
+def test_eval_without_the_studies_extra_says_what_to_install(study, tmp_path):
+    """The runtime install (and image) leaves matplotlib out: `toptag eval` says in one line what to
+    install, before any work, instead of failing at the plots."""
+    import subprocess
+    import sys
+
+    code = "import sys; sys.modules['matplotlib'] = None; from toptag.cli import main; main()"
+    p = subprocess.run([sys.executable, "-c", code, "eval", study, "--out", str(tmp_path / "out")],
+                       capture_output=True, text=True, timeout=120, check=False)
+    assert p.returncode == 1, p.stderr  # the environment lacks something (toptag.errors.SetupError)
+    assert p.stderr.strip().splitlines() == [p.stderr.strip()] and "pip install 'toptag[studies]'" in p.stderr
+    assert not (tmp_path / "out").exists()

@@ -31,8 +31,9 @@ import numpy as np
 
 from sim.motion import ImuModel, Trajectory, bus_trajectory
 from sim.scene import rsu_mounts
+from sim.studies import require_plotting
 from toptag.fix import Fix
-from toptag.errors import InputError, report
+from toptag.errors import InputError, SetupError, report
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.geometry import wrap_angle
 from toptag.limits import BUS_MAX_SPEED_MPS
@@ -460,6 +461,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
+    try:
+        require_plotting()
+    except SetupError as e:
+        return report("eval fusion", e)
     if a.fixes == "live":
         return report("eval fusion", InputError("--fixes live needs the RSU image pipeline; pass "
                                                 "run(fix_source=...) from Python until it is wired in"))

@@ -71,9 +71,11 @@ import numpy as np
 from sim.image_model import ImageModel
 from sim.sampling import SECTOR_HALF_ANGLE
 from sim.scene import bundled_vehicle
+from sim.studies import require_plotting
 from sim.studies.paper_sample import run_sample, worker_init
 from sim.studies.paper_setup import CASES, DISTANCES, NEIGHBOURS, PAPER_CLAIMS, PRIMARY, SOLVERS, VEHICLE
 from sim.studies.paper_stats import check_targets, render_table, summarise
+from toptag.errors import SetupError, report
 from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.progress import Progress
 from toptag.units import kmh_from_mps
@@ -178,6 +180,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=None, help="processes (default: every core)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        require_plotting()
+    except SetupError as e:
+        return report("eval paper", e)
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     bad = [c for c in cases if c not in CASES]
     if bad or not cases:

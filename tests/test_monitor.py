@@ -1,0 +1,35 @@
+"""`toptag monitor --duration`: the span it watches starts with the buses' traffic, not with its own start
+(a monitor started before the simulator and the buses, as in docker compose, must not run out first)."""
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+from conftest import key_for, make_samples
+
+from protocol import GroundTruth, RsuStatus
+from protocol.transport import publish
+from toptag.waiting import wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def test_monitor_duration_counts_from_the_first_bus_message(router, launch, zenoh_session, tmp_path):
+    report = tmp_path / "report.json"
+    mon = launch(["-m", "toptag", "monitor", "--duration", "1", "--period", "0.2", "--report", str(report)],
+                 env={"TOPTAG_ZENOH_MODE": "client", "TOPTAG_ZENOH_CONNECT": router})
+    s = zenoh_session("client", connect=[router])
+    status: RsuStatus = make_samples()["RsuStatus"]
+    # RSU heartbeats alone are not traffic: several times --duration later the monitor still watches.
+    for _ in range(15):
+        publish(s, key_for(status), status)
+        time.sleep(0.2)
+    assert mon.proc.poll() is None, mon.output()[-2000:]
+    assert not report.exists()
+    truth = GroundTruth(bus_id="bus-17", t_ns=time.time_ns(), x=1.0, y=2.0, yaw=0.0)
+    publish(s, key_for(truth), truth)  # the first bus message: 1 s from now it reports and exits 0
+    assert wait_until(lambda: mon.proc.poll() is not None, 30), mon.output()[-2000:]
+    assert mon.proc.returncode == 0
+    summary = json.loads(report.read_text())
+    assert "bus-17" in summary["buses"] and status.rsu_id in summary["rsus"]
