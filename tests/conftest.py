@@ -18,6 +18,19 @@ from toptag.waiting import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Lines a test module wants printed in the terminal summary (figures of a system test, such as timings):
+# config.stash[SUMMARY_LINES].append(line).
+SUMMARY_LINES = pytest.StashKey[list]()
+
+
+def pytest_configure(config):
+    config.stash[SUMMARY_LINES] = []
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    for line in config.stash.get(SUMMARY_LINES, []):
+        terminalreporter.write_line(line)
+
 
 @pytest.fixture
 def free_port():

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import SUMMARY_LINES
 from dockerhost import (
     STANDIN_PYTHON,
     DockerUnavailable,
@@ -71,7 +72,9 @@ def docker_host(tmp_path_factory, request):
         engine.start()
         cmd = compose_command()
     except DockerUnavailable as e:
+        engine.stop()
         pytest.skip(f"Docker cannot run here: {e}")
+    host: dict = {}
     try:
         _timed("engine ready" + (" (dockerd started)" if engine.started_here else ""), t0)
         overrides: list[Path] = []
@@ -83,8 +86,8 @@ def docker_host(tmp_path_factory, request):
         _timed(f"base image ({'stand-in ' + STANDIN_PYTHON if overrides else base})", t0)
         if not pullable(router):
             overrides.append(CI / "ci.standin-router.yaml")
-        host = {"cmd": cmd, "overrides": overrides, "work": work, "engine": engine.server_version,
-                "compose": compose_version(cmd)}
+        host.update({"cmd": cmd, "overrides": overrides, "work": work, "engine": engine.server_version,
+                     "compose": compose_version(cmd)})
         t0 = time.monotonic()
         run([*cmd, *_project(host, "toptag-ci-build", run_files=False), "build"], timeout=1200)
         _timed("image build (compose build)", t0)
@@ -95,10 +98,10 @@ def docker_host(tmp_path_factory, request):
         if left:
             run(["docker", "rm", "-f", *left], check=False)
         engine.stop()
-        reporter = request.config.pluginmanager.get_plugin("terminalreporter")
-        if reporter is not None and TIMINGS:
-            reporter.write_line(f"compose system test ({engine.server_version or 'no engine'}): " +
-                                "; ".join(f"{k} {v}" for k, v in TIMINGS.items()))
+        if TIMINGS:
+            request.config.stash[SUMMARY_LINES].append(
+                f"compose system test (engine {engine.server_version}, compose {host.get('compose')}): " +
+                "; ".join(f"{k} {v}" for k, v in TIMINGS.items()))
 
 
 def _leftover_containers() -> list[str]:

@@ -1,11 +1,12 @@
 """The deployment: docker/compose.yaml and docker/Dockerfile checked without a Docker engine, and the same
 topology run on separate (namespaced) hosts.
 
-No Docker engine runs here, so the compose file is parsed (it is JSON, which is YAML) with
-docker/topology.py and every service's command is checked with the real parser of its toptag command,
-against the files the image would hold. Then test_separate_hosts_* runs exactly those commands and
-environments without Docker: every service in its own Linux network namespace, joined to the others only
-through a bridge and the Zenoh router, and cuts one RSU's link mid-run (root only; skipped otherwise).
+The compose files are read (YAML) with docker/topology.py and every service's command is checked with the
+real parser of its toptag command, against the files the image would hold. Then test_separate_hosts_*
+runs exactly those commands and environments without Docker: every service in its own Linux network
+namespace, joined to the others only through a bridge and the Zenoh router, and cuts one RSU's link
+mid-run (root only; skipped otherwise). The image built and the compose files run on a real engine:
+tests/test_compose.py (the system tier).
 """
 from __future__ import annotations
 
