@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-unit test-system docker-engine locate-example clean
+.PHONY: setup demo test test-unit test-compose docker-engine locate-example clean
 
 setup: $(VENV)/.installed
 
@@ -18,15 +18,16 @@ demo: setup
 locate-example: setup
 	$(BIN)/toptag locate --camera examples/rsu-sw-960x720.json --vehicle examples/bus-17.json examples/*.jpg
 
-# Every test: the suite, then the system tier (tests/test_compose.py: docker compose up, plain and secured,
-# on a Docker engine that docker-engine installs where missing; skipped with the reason where it cannot run).
-SYSTEM_TESTS := tests/test_compose.py
+# Every test, in two pytest runs: the suite, then the compose test (tests/test_compose.py, system tier:
+# docker compose up, plain and secured, on a Docker engine that docker-engine installs where missing;
+# skipped with the reason where Docker cannot run). test-compose runs the compose test alone.
+COMPOSE_TESTS := tests/test_compose.py
 test: setup docker-engine
-	$(BIN)/python -m pytest -q --ignore=$(SYSTEM_TESTS)
-	$(BIN)/python -m pytest -q $(SYSTEM_TESTS)
+	$(BIN)/python -m pytest -q --ignore=$(COMPOSE_TESTS)
+	$(BIN)/python -m pytest -q $(COMPOSE_TESTS)
 
-test-system: setup docker-engine
-	$(BIN)/python -m pytest -q $(SYSTEM_TESTS)
+test-compose: setup docker-engine
+	$(BIN)/python -m pytest -q $(COMPOSE_TESTS)
 
 docker-engine:
 	@sh tests/compose/install-docker.sh

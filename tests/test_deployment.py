@@ -6,7 +6,7 @@ real parser of its toptag command, against the files the image would hold. Then 
 runs exactly those commands and environments without Docker: every service in its own Linux network
 namespace, joined to the others only through a bridge and the Zenoh router, and cuts one RSU's link
 mid-run (root only; skipped otherwise). The image built and the compose files run on a real engine:
-tests/test_compose.py (the system tier).
+tests/test_compose.py.
 """
 from __future__ import annotations
 

@@ -32,8 +32,8 @@ import numpy as np
 from sim.motion import ImuModel, Trajectory, bus_trajectory
 from sim.scene import rsu_mounts
 from sim.studies import require_plotting
-from toptag.fix import Fix
 from toptag.errors import InputError, SetupError, report
+from toptag.fix import Fix
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.geometry import wrap_angle
 from toptag.limits import BUS_MAX_SPEED_MPS

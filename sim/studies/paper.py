@@ -80,6 +80,7 @@ from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.progress import Progress
 from toptag.units import kmh_from_mps
 
+
 def default_workers() -> int:
     try:
         return max(1, len(os.sched_getaffinity(0)))
