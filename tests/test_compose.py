@@ -138,7 +138,8 @@ def _run_demo(host: dict, name: str, secure: bool, tmp_path: Path, monkeypatch) 
             time.sleep(1.0)
         _timed(f"{name}: up to the reports", t0)
         t1 = time.monotonic()
-        run([*cmd, *project, "stop", "-t", "20"], timeout=300)
+        # SIGTERM, then SIGKILL after 60 s (a generous grace: a killed container fails the test, exit 137).
+        run([*cmd, *project, "stop", "-t", "60"], timeout=600)
         _timed(f"{name}: stop", t1)
         out["containers"] = containers(cmd, project)
         out["logs"] = run([*cmd, *project, "logs", "--no-color"], timeout=120, check=False).stdout
