@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test test-unit test-compose docker-engine locate-example clean
+.PHONY: setup browser demo test test-unit test-compose docker-engine locate-example clean
 
 setup: $(VENV)/.installed
 
@@ -11,6 +11,11 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $@
+
+# The live view's browser test drives Debian's chromium headless (Playwright's own browser download
+# does not work offline): installed here when missing, as root.
+browser:
+	@command -v chromium >/dev/null 2>&1 || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null)
 
 demo: setup
 	$(BIN)/toptag demo --duration 60 --report demo-report.json
@@ -22,7 +27,7 @@ locate-example: setup
 # docker compose up, plain and secured, on a Docker engine that docker-engine installs where missing;
 # skipped with the reason where Docker cannot run). test-compose runs the compose test alone.
 COMPOSE_TESTS := tests/test_compose.py
-test: setup docker-engine
+test: setup docker-engine browser
 	$(BIN)/python -m pytest -q --ignore=$(COMPOSE_TESTS)
 	$(BIN)/python -m pytest -q $(COMPOSE_TESTS)
 

@@ -23,11 +23,12 @@ from protocol.messages import (
     Message,
     PoseFix,
     RsuStatus,
+    TagDetections,
     check_id,
 )
 
 __all__ = [
     "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "CoarsePosition", "Frame", "FusedPose",
     "FusionHealth", "GnssFix", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuStatus",
-    "check_id", "codec", "decode", "decode_any", "encode", "keys",
+    "TagDetections", "check_id", "codec", "decode", "decode_any", "encode", "keys",
 ]

@@ -10,6 +10,7 @@ an id to build a subscription / query pattern; publishing helpers refuse pattern
 | pose_fix(intersection, bus, rsu)     | toptag/v1/fix/<intersection>/<bus>/<rsu>           | PoseFix        |
 | frame(rsu)                           | toptag/v1/frame/<rsu>                              | Frame          |
 | rsu_status(rsu)                      | toptag/v1/status/rsu/<rsu>                         | RsuStatus      |
+| detections(rsu)                      | toptag/v1/detections/<rsu>                         | TagDetections  |
 | imu(bus)                             | toptag/v1/imu/<bus>                                | Imu            |
 | ground_truth(bus)                    | toptag/v1/truth/<bus>                              | GroundTruth    |
 | gnss(bus)                            | toptag/v1/gnss/<bus>                               | GnssFix        |
@@ -35,6 +36,7 @@ LAYOUT: dict[str, tuple[str, tuple[str, ...]]] = {
     "pose_fix": ("fix", ("intersection", "bus", "rsu")),
     "frame": ("frame", ("rsu",)),
     "rsu_status": ("status/rsu", ("rsu",)),
+    "tag_detections": ("detections", ("rsu",)),
     "imu": ("imu", ("bus",)),
     "ground_truth": ("truth", ("bus",)),
     "gnss": ("gnss", ("bus",)),
@@ -85,6 +87,10 @@ def rsu_status(rsu: str) -> str:
     return _build("rsu_status", rsu)
 
 
+def detections(rsu: str) -> str:
+    return _build("tag_detections", rsu)
+
+
 def imu(bus: str) -> str:
     return _build("imu", bus)
 
@@ -127,7 +133,7 @@ def key_of(msg) -> str:
         return _build(t, msg.intersection_id, msg.bus_id)
     if t == "pose_fix":
         return pose_fix(msg.intersection_id, msg.bus_id, msg.rsu_id)
-    if t in ("frame", "rsu_status"):
+    if t in ("frame", "rsu_status", "tag_detections"):
         return _build(t, msg.rsu_id)
     if t in ("imu", "ground_truth", "gnss", "fused_pose"):
         return _build(t, msg.bus_id)

@@ -55,7 +55,18 @@ def check_id(value: str) -> str:
 
 
 Id = Annotated[str, AfterValidator(check_id)]
-TimeNs = Annotated[int, Field(ge=0, description="integer nanoseconds since the Unix epoch")]
+
+
+class _EpochTime:
+    """Marks a field as a timestamp (ns since the epoch), as opposed to a duration: a replay that
+    shifts a recording to the present moves exactly these fields (protocol.timeshift)."""
+
+    def __repr__(self) -> str:
+        return "EPOCH_TIME"
+
+
+EPOCH_TIME = _EpochTime()
+TimeNs = Annotated[int, Field(ge=0, description="integer nanoseconds since the Unix epoch"), EPOCH_TIME]
 DurationNs = Annotated[int, Field(ge=0, description="integer nanoseconds")]
 Count = Annotated[int, Field(ge=0)]
 
@@ -247,6 +258,38 @@ class RsuStatus(Message):
     clock: ClockInfo = ClockInfo()
 
 
+class DetectedTag(BaseModel):
+    """One tag of an announced bus as an RSU detected it in one frame."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    bus_id: Id
+    tag_id: int = Field(ge=0)
+    corners: list[tuple[float, float]] = Field(
+        min_length=4, max_length=4,
+        description="observed pixels (x right, y down; OpenCV's pixel-centre convention, lens distortion "
+                    "not removed), in the detector's corner order")
+    used: bool = Field(default=True, description="the pose solver used this tag (False: screened out)")
+
+
+class TagDetections(Message):
+    """What an RSU found in one processed frame, on keys.detections(rsu_id): the tags of the announced
+    buses, with their corners in the frame's pixels, so that an operator's view can draw them over the
+    image. Sent for every frame processed while a bus is in session (an empty list: nothing found)."""
+
+    TYPE: ClassVar[str] = "tag_detections"
+    type: Literal["tag_detections"] = "tag_detections"
+    rsu_id: Id
+    capture_time_ns: TimeNs
+    frame_seq: Count
+    width: int = Field(gt=0, description="image size the corners refer to")
+    height: int = Field(gt=0)
+    tags: list[DetectedTag] = Field(default_factory=list)
+    modes: dict[Id, str] = Field(default_factory=dict, description="per bus in session: the pipeline's mode "
+                                                                    "(tracked, acquired, searching, ...)")
+    processing_ns: DurationNs | None = None
+
+
 # ---- camera -----------------------------------------------------------------------------------
 
 FrameEncoding = Literal["jpeg", "png", "gray8", "bgr8", "rgb8"]
@@ -361,6 +404,6 @@ class FusedPose(Message):
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Approach, Leave, ActiveSessions, PoseFix, RsuStatus, Frame, Imu, GroundTruth,
-                        GnssFix, FusedPose)
+    m.TYPE: m for m in (Approach, Leave, ActiveSessions, PoseFix, RsuStatus, TagDetections, Frame, Imu,
+                        GroundTruth, GnssFix, FusedPose)
 }

@@ -23,10 +23,18 @@ from toptag.progress import Progress
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag demo", description=__doc__.split("\n\n")[0])
     p.add_argument("--scenario", default=None, help="scenario file (default: the bundled two-bus demo)")
-    p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
+    p.add_argument("--duration", type=float, default=None, help="seconds to run (default 60; with --replay: "
+                                                                 "seconds of the recording, default all of it)")
     p.add_argument("--report", default=None, help="write the JSON report here")
     p.add_argument("--logs", default=None, help="directory for each process's log (default: a temp dir)")
     p.add_argument("--period", type=float, default=2.0, help="seconds between progress tables")
+    p.add_argument("--view", action="store_true", help="start the live view (toptag view) and print its URL")
+    p.add_argument("--bind", default="127.0.0.1:0", metavar="ADDR:PORT", help="where the live view listens")
+    p.add_argument("--record", default=None, metavar="RUN.mcap", help="record every message (toptag record)")
+    p.add_argument("--record-frames", action="store_true", help="with --record: the camera frames too")
+    p.add_argument("--replay", default=None, metavar="RUN.mcap",
+                   help="instead of the simulator, replay a recorded drive (its frames, IMU, GNSS and truth, "
+                        "shifted to now) through fresh RSUs and buses; --duration seconds of it (default: all)")
     return p
 
 
@@ -62,17 +70,40 @@ def main(argv: list[str]) -> int:
                         + client) for cam in scenario.camera_paths()]
     buses = [group.start(f"bus-{veh.stem}", TOPTAG + ["bus", "--vehicle", str(veh), "--map", str(scenario.map_path())]
                          + client) for veh in scenario.vehicle_paths()]
-    sim = group.start("sim", TOPTAG + ["sim", "run", "--scenario", str(scenario_path)] + client)
+    tools = []  # recorder and view: stopped after the services, before the router
+    if args.record:
+        tools.append(group.start("record", TOPTAG + ["record", "--out", args.record] + client
+                                 + (["--frames"] if args.record_frames else [])))
+    if args.view:
+        view = group.start("view", TOPTAG + ["view", "--bind", args.bind, "--scenario", str(scenario_path)] + client)
+        tools.append(view)
+        if not group.wait_for_log(view, "open http", 30):
+            print(f"toptag demo: the live view did not start:\n{view.log_tail()}", file=sys.stderr)
+        else:
+            url = next(line for line in view.log_path.read_text().splitlines() if "open http" in line)
+            print(f"toptag demo: live view: {url.split('open ', 1)[1]}", flush=True)
+    for tool in tools:  # recorder and view subscribed before the first message
+        group.wait_for_log(tool, "ready", 15)
+    if args.replay:
+        sim = group.start("replay", TOPTAG + ["replay", args.replay, "--sensors", "--shift-to-now",
+                                              "--wait-subscribers", "10"] + client
+                          + ([] if args.duration is None else ["--duration", str(args.duration)]))
+    else:
+        sim = group.start("sim", TOPTAG + ["sim", "run", "--scenario", str(scenario_path)] + client)
 
     t_start = time.monotonic()
-    t_end = t_start + args.duration
-    bar = Progress(args.duration, "toptag demo", unit=" s")
+    # With --replay the demo ends with the replay (its own --duration); else after --duration.
+    seconds = 60.0 if args.duration is None else args.duration
+    t_end = float("inf") if args.replay else t_start + seconds
+    bar = Progress(seconds, "toptag demo", unit=" s")
     exit_code = 0
     try:
         while not stop.wait(args.period) and time.monotonic() < t_end:
             bar.set(round(time.monotonic() - t_start), note="Ctrl-C stops it and writes the report")
             print(monitor.progress(), flush=True)
             dead = group.dead()
+            if args.replay and dead == [sim] and sim.popen.returncode == 0:
+                break  # the recorded drive is over
             if dead:
                 for c in dead:
                     print(f"toptag demo: {c.name} exited with {c.popen.returncode}:\n{c.log_tail()}", file=sys.stderr)
@@ -83,6 +114,7 @@ def main(argv: list[str]) -> int:
         # Buses first (they send Leave), then the sim, the RSUs, and the router last.
         codes = group.stop(buses + [sim] + rsus)
         time.sleep(0.2)
+        codes.update(group.stop(tools))
         summary = monitor.summary()
         monitor.close()
         session.close()
@@ -98,6 +130,8 @@ def main(argv: list[str]) -> int:
     if args.report:
         write_report(args.report, summary)
         print(f"toptag demo: report written to {args.report}")
+    if args.record:
+        print(f"toptag demo: recording written to {args.record}")
     if any(c not in (0, None) for c in codes.values()):
         print(f"toptag demo: processes exited with {codes}", file=sys.stderr)
         exit_code = exit_code or 1

@@ -157,7 +157,9 @@ def make_samples() -> dict:
         Leave,
         PoseFix,
         RsuStatus,
+        TagDetections,
     )
+    from protocol.messages import DetectedTag
     from toptag.vehicle import VehicleFile
 
     vehicle = VehicleFile.model_validate(json.loads((REPO / "toptag/data/bus_double.json").read_text()))
@@ -176,6 +178,12 @@ def make_samples() -> dict:
                   active_buses=[vehicle.id], frames_received=100, frames_processed=90, frames_skipped=10,
                   fixes_published=80, messages_rejected=1, detection_ns_mean=21_000_000,
                   detection_ns_max=40_000_000),
+        TagDetections(rsu_id="rsu-sw", capture_time_ns=t, frame_seq=1234, width=960, height=720,
+                      tags=[DetectedTag(bus_id=vehicle.id, tag_id=3, corners=[(10.5, 20.0), (40.0, 21.0), (39.5, 50.0),
+                                                                               (11.0, 49.0)]),
+                            DetectedTag(bus_id=vehicle.id, tag_id=7, corners=[(60.0, 20.0), (90.0, 21.0), (89.5, 50.0),
+                                                                               (61.0, 49.0)], used=False)],
+                      modes={vehicle.id: "tracked"}, processing_ns=7_000_000),
         Frame(rsu_id="rsu-sw", capture_time_ns=t, seq=7, encoding="jpeg", width=960, height=720,
               image=b"\xff\xd8" + bytes(range(256)) * 40 + b"\xff\xd9"),
         Imu(bus_id=vehicle.id, t_ns=t, gyro_x=0.001, gyro_y=-0.002, gyro_z=0.05, accel_x=0.3, accel_y=0.01,

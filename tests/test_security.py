@@ -238,7 +238,8 @@ def test_acl_binds_each_identity_to_its_own_keys(pki):
         return {k for rid in policy["rules"] for k in rules[rid]["key_exprs"]
                 if message in rules[rid]["messages"] and flow in rules[rid]["flows"]}
 
-    assert allowed("rsu:rsu-sw", "put", "ingress") == {"toptag/v1/fix/*/*/rsu-sw", "toptag/v1/status/rsu/rsu-sw"}
+    assert allowed("rsu:rsu-sw", "put", "ingress") == {"toptag/v1/fix/*/*/rsu-sw", "toptag/v1/status/rsu/rsu-sw",
+                                                        "toptag/v1/detections/rsu-sw"}
     assert allowed("bus:bus-17", "put", "ingress") == {"toptag/v1/approach/*/bus-17", "toptag/v1/leave/*/bus-17",
                                                         "toptag/v1/fused/bus-17"}
     assert allowed("bus:bus-17", "liveliness_token", "ingress") == {"toptag/v1/alive/*/bus-17"}

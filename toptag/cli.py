@@ -19,11 +19,15 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("rsu",): ("services.rsu.service:main", "RSU service for one camera"),
     ("bus",): ("services.bus.agent:main", "bus agent: announce, fuse fixes with IMU, publish FusedPose"),
     ("monitor",): ("services.monitor:main", "live localization quality of a running intersection"),
+    ("view",): ("services.view.app:main", "the intersection live in a browser (Rerun web viewer)"),
+    ("record",): ("services.recording:main", "record every message (MCAP) for replay and offline evaluation"),
+    ("replay",): ("services.replay:main", "republish a recording with its original pacing"),
     ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
     ("sim", "run"): ("sim.live:main", "live simulator: RSU frames and bus sensors over Zenoh"),
     ("bench", "latency"): ("services.bench_latency:main", "capture-to-arrival latency through router and RSU"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("eval", "fusion"): ("sim.studies.fusion:main", "fused pose error against fix latency (study)"),
+    ("eval", "replay"): ("services.replay_eval:main", "re-run a bus's fusion offline on a recording"),
     ("eval", "paper"): ("sim.studies.paper:main", "reproduce the paper's simulation study"),
 }
 

@@ -20,7 +20,7 @@ from protocol import keys
 from protocol.codec import ProtocolError
 from protocol.convert import fix_to_message
 from protocol.images import frame_to_gray
-from protocol.messages import Approach, Frame, Leave, PoseFix, RsuStatus
+from protocol.messages import Approach, DetectedTag, Frame, Leave, PoseFix, RsuStatus, TagDetections
 from protocol.transport import (
     REJECTED,
     MessageCounters,
@@ -75,6 +75,7 @@ class RsuService:
         self._stop = threading.Event()
         self._fix_pubs: dict[str, MessagePublisher] = {}
         self._status_pub = MessagePublisher(session, keys.rsu_status(self.rsu_id), RsuStatus)
+        self._detections_pub = MessagePublisher(session, keys.detections(self.rsu_id), TagDetections)
         self._subs = [
             subscribe_messages(session, keys.approach(intersection, keys.ANY), Approach,
                                lambda m: self._changes.put(("approach", m)), self.msg_counters, log),
@@ -191,6 +192,20 @@ class RsuService:
             published += 1
         c.fixes_published += published
         c.frames_with_fix += bool(published)
+        self._detections_pub.put(self.detections(frame, result, processing_ns))
+
+    def detections(self, frame: Frame, result, processing_ns: int) -> TagDetections:
+        """The tags found in this frame, corners as observed (for a view to draw over the image)."""
+        tags = []
+        for bus, vr in result.vehicles.items():
+            used = set(vr.solution.tags) if vr.solution is not None and vr.solution.ok else set()
+            for ob in vr.observations:
+                corners = ob.raw_corners if ob.raw_corners is not None else ob.corners
+                tags.append(DetectedTag(bus_id=bus, tag_id=int(ob.tag_id), used=int(ob.tag_id) in used,
+                                        corners=[(float(u), float(v)) for u, v in corners]))
+        return TagDetections(rsu_id=self.rsu_id, capture_time_ns=frame.capture_time_ns, frame_seq=frame.seq,
+                             width=frame.width, height=frame.height, tags=tags,
+                             modes={bus: vr.mode for bus, vr in result.vehicles.items()}, processing_ns=processing_ns)
 
     def status(self) -> RsuStatus:
         c = self.counters
@@ -238,6 +253,7 @@ class RsuService:
         for p in self._fix_pubs.values():
             p.close()
         self._status_pub.close()
+        self._detections_pub.close()
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -37,6 +37,7 @@ _OWN = {
     "fix_as": keys.pose_fix(A, A, _ID),
     "fix_for": keys.pose_fix(A, _ID, A),
     "status": keys.rsu_status(_ID),
+    "detections": keys.detections(_ID),
     "frame": keys.frame(_ID),
     "approach": keys.approach(A, _ID),
     "leave": keys.leave(A, _ID),
@@ -51,9 +52,9 @@ _ALL_KINDS = tuple(keys.LAYOUT)
 ROLE_GRANTS: dict[str, tuple[Grant, ...]] = {
     "rsu": (
         _g("publish PoseFix as itself (any intersection, any bus)", "put", "ingress", _OWN["fix_as"]),
-        _g("publish its RsuStatus", "put", "ingress", _OWN["status"]),
-        _g("learn the subscribers of fixes and status (or its puts are never sent)",
-           "declare_subscriber", "egress", _prefix("pose_fix"), _prefix("rsu_status")),
+        _g("publish its RsuStatus and its TagDetections", "put", "ingress", _OWN["status"], _OWN["detections"]),
+        _g("learn the subscribers of fixes, status and detections (or its puts are never sent)",
+           "declare_subscriber", "egress", _prefix("pose_fix"), _prefix("rsu_status"), _prefix("tag_detections")),
         _g("read the other RSUs' fixes (where to search)", "declare_subscriber", "ingress", _prefix("pose_fix")),
         _g("", "put", "egress", _prefix("pose_fix")),
         _g("receive its own camera frames", "declare_subscriber", "ingress", _OWN["frame"]),

@@ -1,0 +1,185 @@
+"""`toptag eval replay`: re-run one bus's fusion offline on a recording, deterministically.
+
+    toptag eval replay RUN.mcap --bus BUS [--config FILTER.toml] [--out RESULTS.json]
+
+Reads the bus's IMU samples and the RSUs' pose fixes from a recording (`toptag record`) and feeds them
+to a fresh bus filter (toptag.fusion, the agent's filter with the agent's rules: a fix is added when
+it was received, an IMU gap over IMU_GAP_RESET_S restarts the filter) in the order the recorder
+received them. Wherever the recording holds the truth (the simulator's), the filter's estimate at the
+truth's time, with what it knew when the truth was received, is scored as the monitor scores the live
+bus (status ok only). Where it holds the bus's own FusedPose, the offline estimate is compared with
+it: a filter change shows as a difference there. No clock, no threads, no network: two runs on one
+recording give the same numbers to the last bit (``digest`` hashes every estimate).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import tomllib
+
+from protocol import codec, keys
+from protocol.codec import ProtocolError
+from protocol.messages import FusedPose, GroundTruth, Imu, PoseFix
+from services.bus.agent import IMU_GAP_RESET_S
+from services.monitor import ErrorStats, TruthTrack
+from services.recording import read_recording
+from toptag.fusion.filter import BusFilter, FilterConfig
+from toptag.fusion.fixes import PoseFix as FilterFix
+from toptag.inputs import InputError
+
+
+def load_filter_config(path: str | Path | None) -> FilterConfig:
+    """FilterConfig from a TOML file: its keys (top level, or a [filter] table) are FilterConfig's
+    fields; an unknown key is refused by name."""
+    if path is None:
+        return FilterConfig()
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise InputError(f"filter config {path}: no such file") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"filter config {path}: not valid TOML ({e})") from None
+    table = data.get("filter", data) if isinstance(data.get("filter"), dict) else data
+    fields = {f.name for f in dataclasses.fields(FilterConfig)}
+    unknown = sorted(set(table) - fields)
+    if unknown:
+        raise InputError(f"filter config {path}: unknown key {unknown[0]!r} (FilterConfig has {', '.join(sorted(fields))})")
+    if isinstance(table.get("consensus_sigma"), list):
+        table["consensus_sigma"] = tuple(table["consensus_sigma"])
+    try:
+        return FilterConfig(**table)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"filter config {path}: {e}") from None
+
+
+class OfflineFusion:
+    """The bus filter fed from recorded messages, in reception order."""
+
+    def __init__(self, config: FilterConfig):
+        self.config = config
+        self.filter = BusFilter(config)
+        self.resets = 0
+        self._last_imu: int | None = None
+        self.truth = TruthTrack()
+        self.fused_err, self.fix_err, self.live_diff = ErrorStats(), ErrorStats(), ErrorStats()
+        self.fixes = 0
+        self.imu = 0
+        self.status_counts: dict[str, int] = {}
+        self._pending_fixes: list[tuple[int, float, float]] = []
+        self._digest = hashlib.sha256()
+
+    def imu_sample(self, m: Imu) -> None:
+        if self._last_imu is not None and (m.t_ns - self._last_imu) * 1e-9 > IMU_GAP_RESET_S:
+            self.filter = BusFilter(self.config)
+            self.resets += 1
+        self._last_imu = m.t_ns
+        self.filter.add_imu(m.t_ns, m.gyro_z, m.accel_x, m.accel_y, m.wheel_speed)
+        self.imu += 1
+
+    def fix(self, m: PoseFix, arrival_ns: int) -> None:
+        self.filter.add_fix(FilterFix.from_any(m), arrival_ns=arrival_ns)
+        self.fixes += 1
+        self._pending_fixes.append((m.capture_time_ns, m.x, m.y))
+
+    def _estimate(self, t_ns: int):
+        est = self.filter.estimate(t_ns) if self.filter.initialized else None
+        if est is not None:
+            self._digest.update(np.asarray([t_ns, est.x, est.y, est.yaw, *np.ravel(est.cov)], dtype=float).tobytes())
+        return est
+
+    def truth_sample(self, m: GroundTruth) -> None:
+        self.truth.add(m)
+        est = self._estimate(m.t_ns)
+        if est is None:
+            return
+        status = est.health.status or "-"
+        self.status_counts[status] = self.status_counts.get(status, 0) + 1
+        if status == "ok":
+            self.fused_err.add(float(np.hypot(est.x - m.x, est.y - m.y)))
+
+    def live_fused(self, m: FusedPose) -> None:
+        est = self._estimate(m.t_ns)
+        if est is not None:
+            self.live_diff.add(float(np.hypot(est.x - m.x, est.y - m.y)))
+
+    def finish(self) -> None:
+        for t, x, y in self._pending_fixes:
+            truth = self.truth.at(t)
+            if truth is not None:
+                self.fix_err.add(float(np.hypot(x - truth[0], y - truth[1])))
+        self._pending_fixes = []
+
+    def report(self) -> dict:
+        def stats(s: ErrorStats) -> dict:
+            return {"n": s.n, "rms_m": s.rms, "max_m": s.max, "p95_m": s.pct(95)}
+        return {"imu_samples": self.imu, "fixes": self.fixes, "filter_restarts": self.resets,
+                "fused_vs_truth": stats(self.fused_err), "fixes_vs_truth": stats(self.fix_err),
+                "offline_vs_live_fused": stats(self.live_diff), "status_at_truth": dict(sorted(self.status_counts.items())),
+                "filter": self.filter.counters(), "digest": self._digest.hexdigest()}
+
+
+def evaluate(recording: str | Path, bus: str, config: FilterConfig) -> dict:
+    """Run the offline fusion of ``bus`` over ``recording``; the report (see module doc)."""
+    run = OfflineFusion(config)
+    wanted = [keys.imu(bus), keys.pose_fix(keys.ANY, bus, keys.ANY), keys.ground_truth(bus), keys.fused_pose(bus)]
+    bad = 0
+    for rec in read_recording(recording, wanted):
+        if rec.message_type not in (Imu, PoseFix, GroundTruth, FusedPose):
+            continue
+        try:
+            m = codec.decode(rec.payload, rec.message_type, key=rec.key)
+        except ProtocolError:
+            bad += 1  # the live bus rejected it too
+            continue
+        if isinstance(m, Imu):
+            run.imu_sample(m)
+        elif isinstance(m, PoseFix):
+            run.fix(m, rec.log_time_ns)
+        elif isinstance(m, GroundTruth):
+            run.truth_sample(m)
+        else:
+            run.live_fused(m)
+    run.finish()
+    out = {"recording": str(recording), "bus": bus, **run.report(), "rejected_payloads": bad}
+    if run.imu == 0:
+        raise InputError(f"recording {recording}: no IMU samples of bus {bus!r}")
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toptag eval replay", description=__doc__.split("\n\n")[0])
+    p.add_argument("recording", metavar="RUN.mcap")
+    p.add_argument("--bus", required=True, help="bus id whose fusion to re-run")
+    p.add_argument("--config", default=None, metavar="FILTER.toml", help="bus filter settings (FilterConfig fields)")
+    p.add_argument("--out", default=None, metavar="RESULTS.json", help="also write the report here")
+    return p
+
+
+def _cm(v) -> str:
+    return "-" if v is None else f"{100 * v:.2f} cm"
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = load_filter_config(args.config)
+        report = evaluate(args.recording, args.bus, config)
+    except (InputError, ValueError) as e:
+        print(f"toptag eval replay: {e}", file=sys.stderr)
+        return 2
+    f, x, d = report["fused_vs_truth"], report["fixes_vs_truth"], report["offline_vs_live_fused"]
+    print(f"bus {args.bus}: {report['imu_samples']} IMU samples, {report['fixes']} fixes, "
+          f"{report['filter_restarts']} filter restarts")
+    print(f"  fused vs truth (status ok): RMS {_cm(f['rms_m'])}, max {_cm(f['max_m'])} over {f['n']} truth samples")
+    print(f"  fixes vs truth: RMS {_cm(x['rms_m'])} over {x['n']} fixes")
+    print(f"  offline vs live fused pose: RMS {_cm(d['rms_m'])}, max {_cm(d['max_m'])} over {d['n']} poses")
+    print(f"  digest {report['digest']}")
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=1))
+    return 0
