@@ -29,7 +29,7 @@ from mcap.writer import CompressionType, Writer
 
 from protocol import keys
 from protocol.messages import MESSAGE_TYPES, Frame, Message
-from services.runner import add_service_arguments, run_service
+from protocol.transport.runner import add_service_arguments, run_service
 
 log = logging.getLogger(__name__)
 

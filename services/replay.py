@@ -28,8 +28,8 @@ from protocol import codec, keys
 from protocol.codec import ProtocolError
 from protocol.timeshift import shift_times
 from protocol.transport import Qos, qos_for, wait_matching
+from protocol.transport.runner import add_service_arguments, run_service
 from services.recording import Recorded, read_recording, recording_channels
-from services.runner import add_service_arguments, run_service
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """`toptag eval replay`: re-run one bus's fusion offline on a recording, deterministically.
 
-    toptag eval replay RUN.mcap --bus BUS [--config FILTER.toml] [--out RESULTS.json]
+    toptag eval replay RUN.mcap --bus BUS [--config BUS.toml] [--out RESULTS.json]
 
 Reads the bus's IMU samples and the RSUs' pose fixes from a recording (`toptag record`) and feeds them
 to a fresh bus filter (toptag.fusion, the agent's filter with the agent's rules: a fix is added when
@@ -14,48 +14,28 @@ recording give the same numbers to the last bit (``digest`` hashes every estimat
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
-import tomllib
 
 from protocol import codec, keys
 from protocol.codec import ProtocolError
+from protocol.convert import fix_from_message
 from protocol.messages import FusedPose, GroundTruth, Imu, PoseFix
-from services.bus.agent import IMU_GAP_RESET_S
+from services.bus.agent import IMU_GAP_RESET_S, BusSettings
 from services.monitor import ErrorStats, TruthTrack
 from services.recording import read_recording
+from toptag.errors import InputError, ToptagError, report
 from toptag.fusion.filter import BusFilter, FilterConfig
-from toptag.fusion.fixes import PoseFix as FilterFix
-from toptag.inputs import InputError
+from toptag.settings import load_settings
 
 
 def load_filter_config(path: str | Path | None) -> FilterConfig:
-    """FilterConfig from a TOML file: its keys (top level, or a [filter] table) are FilterConfig's
-    fields; an unknown key is refused by name."""
-    if path is None:
-        return FilterConfig()
-    try:
-        data = tomllib.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise InputError(f"filter config {path}: no such file") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"filter config {path}: not valid TOML ({e})") from None
-    table = data.get("filter", data) if isinstance(data.get("filter"), dict) else data
-    fields = {f.name for f in dataclasses.fields(FilterConfig)}
-    unknown = sorted(set(table) - fields)
-    if unknown:
-        raise InputError(f"filter config {path}: unknown key {unknown[0]!r} (FilterConfig has {', '.join(sorted(fields))})")
-    if isinstance(table.get("consensus_sigma"), list):
-        table["consensus_sigma"] = tuple(table["consensus_sigma"])
-    try:
-        return FilterConfig(**table)
-    except (TypeError, ValueError) as e:
-        raise InputError(f"filter config {path}: {e}") from None
+    """The [filter] table of a bus settings file (`toptag bus --config`, toptag.settings: TOML or YAML,
+    unknown keys refused by name); defaults without a file."""
+    return FilterConfig() if path is None else load_settings(path, BusSettings).filter
 
 
 class OfflineFusion:
@@ -83,7 +63,7 @@ class OfflineFusion:
         self.imu += 1
 
     def fix(self, m: PoseFix, arrival_ns: int) -> None:
-        self.filter.add_fix(FilterFix.from_any(m), arrival_ns=arrival_ns)
+        self.filter.add_fix(fix_from_message(m, arrival_ns=arrival_ns))
         self.fixes += 1
         self._pending_fixes.append((m.capture_time_ns, m.x, m.y))
 
@@ -156,7 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag eval replay", description=__doc__.split("\n\n")[0])
     p.add_argument("recording", metavar="RUN.mcap")
     p.add_argument("--bus", required=True, help="bus id whose fusion to re-run")
-    p.add_argument("--config", default=None, metavar="FILTER.toml", help="bus filter settings (FilterConfig fields)")
+    p.add_argument("--config", default=None, metavar="BUS.toml",
+                   help="a bus settings file (toptag bus --config): its [filter] table")
     p.add_argument("--out", default=None, metavar="RESULTS.json", help="also write the report here")
     return p
 
@@ -169,17 +150,18 @@ def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     try:
         config = load_filter_config(args.config)
-        report = evaluate(args.recording, args.bus, config)
-    except (InputError, ValueError) as e:
-        print(f"toptag eval replay: {e}", file=sys.stderr)
-        return 2
-    f, x, d = report["fused_vs_truth"], report["fixes_vs_truth"], report["offline_vs_live_fused"]
-    print(f"bus {args.bus}: {report['imu_samples']} IMU samples, {report['fixes']} fixes, "
-          f"{report['filter_restarts']} filter restarts")
+        result = evaluate(args.recording, args.bus, config)
+    except ToptagError as e:
+        return report("eval replay", e)
+    except ValueError as e:  # an unreadable recording
+        return report("eval replay", InputError(str(e)))
+    f, x, d = result["fused_vs_truth"], result["fixes_vs_truth"], result["offline_vs_live_fused"]
+    print(f"bus {args.bus}: {result['imu_samples']} IMU samples, {result['fixes']} fixes, "
+          f"{result['filter_restarts']} filter restarts")
     print(f"  fused vs truth (status ok): RMS {_cm(f['rms_m'])}, max {_cm(f['max_m'])} over {f['n']} truth samples")
     print(f"  fixes vs truth: RMS {_cm(x['rms_m'])} over {x['n']} fixes")
     print(f"  offline vs live fused pose: RMS {_cm(d['rms_m'])}, max {_cm(d['max_m'])} over {d['n']} poses")
-    print(f"  digest {report['digest']}")
+    print(f"  digest {result['digest']}")
     if args.out:
-        Path(args.out).write_text(json.dumps(report, indent=1))
+        Path(args.out).write_text(json.dumps(result, indent=1))
     return 0

@@ -16,9 +16,7 @@ from services.recording import McapLog
 from services.replay_eval import evaluate, load_filter_config
 from sim.scenario import bundled_scenario_path, load_scenario
 from sim.world import World
-from toptag.inputs import InputError
-
-pytestmark = pytest.mark.unit
+from toptag.errors import InputError
 
 T0 = 1_800_000_000_000_000_000
 BUS = "bus-42"
@@ -64,6 +62,7 @@ def drive(tmp_path_factory):
     return path
 
 
+@pytest.mark.unit
 def test_offline_fusion_is_bit_for_bit_repeatable_and_scored_against_truth(drive):
     a = evaluate(drive, BUS, load_filter_config(None))
     b = evaluate(drive, BUS, load_filter_config(None))
@@ -74,18 +73,20 @@ def test_offline_fusion_is_bit_for_bit_repeatable_and_scored_against_truth(drive
     assert 0.5 * FIX_SIGMA < a["fixes_vs_truth"]["rms_m"] < 2 * FIX_SIGMA
 
 
+@pytest.mark.unit
 def test_filter_settings_from_toml_change_the_result_and_unknown_keys_are_refused(drive, tmp_path):
     base = evaluate(drive, BUS, load_filter_config(None))
-    cfg = tmp_path / "filter.toml"
+    cfg = tmp_path / "bus.toml"
     cfg.write_text("[filter]\ngate_probability = 0.95\npos_noise_density = 0.05\n")
     changed = evaluate(drive, BUS, load_filter_config(cfg))
     assert changed["digest"] != base["digest"]
     bad = tmp_path / "bad.toml"
-    bad.write_text("gate_probabilty = 0.9\n")
-    with pytest.raises(InputError, match="unknown key 'gate_probabilty'"):
+    bad.write_text("[filter]\ngate_probabilty = 0.9\n")
+    with pytest.raises(InputError, match="filter.gate_probabilty: unknown key"):
         load_filter_config(bad)
 
 
+@pytest.mark.integration
 def test_eval_replay_command(drive, tmp_path):
     out = tmp_path / "r.json"
     p = subprocess.run([sys.executable, "-m", "toptag", "eval", "replay", str(drive), "--bus", BUS, "--out", str(out)],

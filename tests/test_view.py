@@ -9,15 +9,13 @@ from services.view.rerun_server import RerunServer, ViewerError, parse_bind
 from services.view.site import camera_footprint, load_site
 from sim.scenario import bundled_scenario_path, load_scenario
 
-pytestmark = pytest.mark.unit
-
-
 @pytest.fixture(scope="module")
 def site():
     sc = load_scenario(bundled_scenario_path())
     return load_site(sc.map_path(), sc.camera_paths(), sc.vehicle_paths())
 
 
+@pytest.mark.unit
 def test_a_footprint_holds_exactly_the_roof_points_its_camera_sees(site):
     from toptag.camera import Camera
 
@@ -35,6 +33,7 @@ def test_a_footprint_holds_exactly_the_roof_points_its_camera_sees(site):
     assert np.all(inside[seen & ~near_edge]) and not np.any(inside[~seen & ~near_edge & in_front])
 
 
+@pytest.mark.unit
 def test_the_map_has_every_rsu_and_north_up(site):
     assert [r.id for r in site.rsus] == ["rsu-sw", "rsu-se", "rsu-ne", "rsu-nw"]
     ne = next(r for r in site.rsus if r.id == "rsu-ne")
@@ -42,6 +41,7 @@ def test_the_map_has_every_rsu_and_north_up(site):
     assert _flip(ne.position)[0, 1] < 0  # north of the centre is up in the view (y down)
 
 
+@pytest.mark.unit
 def test_covariance_ellipse_axes():
     cov = np.array([[0.04, 0.0], [0.0, 0.01]])  # sigma 20 cm along x, 10 cm along y
     e = covariance_ellipse(1.0, 2.0, cov)
@@ -50,6 +50,7 @@ def test_covariance_ellipse_axes():
     assert np.allclose(e.mean(axis=0), [1.0, 2.0], atol=1e-2)
 
 
+@pytest.mark.unit
 def test_bind_address_is_checked():
     assert parse_bind("127.0.0.1:9090") == ("127.0.0.1", 9090)
     assert parse_bind("127.0.0.1") == ("127.0.0.1", 0)
@@ -58,6 +59,7 @@ def test_bind_address_is_checked():
             parse_bind(bad)
 
 
+@pytest.mark.integration
 def test_rerun_server_listens_on_loopback_and_stops_by_pid():
     import socket
 
@@ -73,6 +75,7 @@ def test_rerun_server_listens_on_loopback_and_stops_by_pid():
     assert server.proc.poll() is not None
 
 
+@pytest.mark.integration
 def test_rerun_server_dies_with_its_parent_even_when_killed(tmp_path):
     import os
     import signal

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import logging
-import sys
 import threading
 import time
 from collections import defaultdict, deque
@@ -45,10 +44,11 @@ from protocol.messages import (
     TagDetections,
 )
 from protocol.transport import MessageCounters, subscribe_messages
+from protocol.transport.runner import add_service_arguments, run_service
 from services.monitor import Monitor
-from services.runner import add_service_arguments, run_service
 from services.view.rerun_server import RerunServer, ViewerError, parse_bind, rerun_binary
 from services.view.site import SiteMap, load_site
+from toptag.errors import InputError
 from toptag.geometry import vehicle_to_world
 from toptag.vehicle import Vehicle
 
@@ -491,30 +491,22 @@ def main(argv: list[str]) -> int:
         from sim.scenario import bundled_scenario_path, load_scenario
 
         if not (0 < args.hz <= 30 and 0 < args.image_hz <= args.hz and args.image_width >= 64):
-            raise ValueError("need 0 < --image-hz <= --hz <= 30 and --image-width >= 64")
+            raise InputError("need 0 < --image-hz <= --hz <= 30 and --image-width >= 64")
         try:
             host, port = parse_bind(args.bind)
         except ViewerError as e:
-            raise ValueError(str(e)) from None
+            raise InputError(str(e)) from None
         if args.map:
             site = load_site(args.map, args.camera or [], args.vehicle or [])
         else:
             sc = load_scenario(args.scenario or bundled_scenario_path())
             site = load_site(sc.map_path(), sc.camera_paths(), sc.vehicle_paths())
-        try:
-            rerun_binary()  # rerun-sdk installed, its viewer binary there
-        except ViewerError as e:
-            raise ValueError(str(e)) from None
+        rerun_binary()  # rerun-sdk installed, its viewer binary there (else SetupError: exit 1)
         return site, RerunServer(host, port)
 
     def build(session, inputs):
         site, server = inputs
-        try:
-            return ViewService(session, site, server, hz=args.hz, image_hz=args.image_hz, image_width=args.image_width)
-        except ViewerError as e:
-            session.close()
-            print(f"toptag view: {e}", file=sys.stderr)
-            raise SystemExit(1) from None
+        return ViewService(session, site, server, hz=args.hz, image_hz=args.image_hz, image_width=args.image_width)
 
     return run_service("view", args, load, build, lambda inputs: f"live view ({len(inputs[0].rsus)} RSUs on the map)")
 

@@ -13,9 +13,10 @@ import urllib.parse
 from pathlib import Path
 
 from services.processes import free_port, stop_process
+from toptag.errors import SetupError
 
 
-class ViewerError(RuntimeError):
+class ViewerError(SetupError):
     """The viewer cannot be started. str(e) is one line."""
 
 
