@@ -103,3 +103,32 @@ def test_rerun_server_dies_with_its_parent_even_when_killed(tmp_path):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+@pytest.mark.integration
+def test_a_tick_draws_every_panel(site, zenoh_session):
+    """The drawing step on a state filled by hand (as the subscriptions fill it): map, camera with
+    overlay, plots and status go to a Rerun recording without error."""
+    import cv2
+    import rerun as rr
+    from conftest import make_samples
+
+    from services.view.app import LiveView
+
+    rec = rr.RecordingStream("toptag-test")
+    rec.memory_recording()
+    view = LiveView(zenoh_session("peer"), rec, site)
+    s = make_samples()
+    t = s["GroundTruth"].t_ns
+    fused = s["FusedPose"].model_copy(update={"bus_id": "bus-17", "t_ns": t})
+    for k in range(3):
+        view.state.on_truth(s["GroundTruth"].model_copy(update={"bus_id": "bus-17", "t_ns": t + k * 50_000_000}))
+        view.state.on_fused(fused.model_copy(update={"t_ns": t + k * 20_000_000}))
+    view.state.on_fix(s["PoseFix"].model_copy(update={"bus_id": "bus-17"}))
+    ok, jpeg = cv2.imencode(".jpg", np.full((720, 960), 128, np.uint8))
+    view.state.on_frame(s["Frame"].model_copy(update={"image": jpeg.tobytes(), "seq": 1234}))
+    view.state.on_detections(s["TagDetections"].model_copy(update={"frame_seq": 1234}))
+    view.tick()
+    view.close()
+    assert view.images_drawn == 1 and view.overlays_drawn == 1
+    assert "bus-17" not in view._cleared

@@ -251,10 +251,7 @@ class LiveView:
                 # Wider than the fused outline and beneath it: a green rim shows where the truth is.
                 rec.log(f"{base}/truth", rr.LineStrips2D([_flip(_outline(vehicle, t.x, t.y, t.yaw))], radii=0.4,
                                                          colors=TRUTH, draw_order=6.0))
-                if self._trail_due(f"{base}/truth_trail"):
-                    trail = [(m.x, m.y) for m in truth if (t.t_ns - m.t_ns) * 1e-9 <= TRAIL_S]
-                    rec.log(f"{base}/truth_trail", rr.LineStrips2D([_flip(trail)], radii=0.07, colors=TRUTH,
-                                                                   draw_order=3.0))
+                self._trail(f"{base}/truth_trail", truth, TRUTH, 3.0)
             if fused:
                 f = fused[-1]
                 self._at(f.t_ns)
@@ -265,10 +262,7 @@ class LiveView:
                                                          colors=FUSED, labels=[label], draw_order=7.0))
                 rec.log(f"{base}/fused_ellipse", rr.LineStrips2D([_flip(covariance_ellipse(f.x, f.y, cov))], radii=0.05,
                                                                  colors=FUSED, draw_order=8.0))
-                if self._trail_due(f"{base}/fused_trail"):
-                    trail = [(m.x, m.y) for m in fused if (f.t_ns - m.t_ns) * 1e-9 <= TRAIL_S]
-                    rec.log(f"{base}/fused_trail", rr.LineStrips2D([_flip(trail)], radii=0.07, colors=FUSED,
-                                                                   draw_order=3.5))
+                self._trail(f"{base}/fused_trail", fused, FUSED, 3.5)
             if fixes:
                 newest = fixes[-1].capture_time_ns
                 recent = [m for m in fixes if (newest - m.capture_time_ns) * 1e-9 <= FIXES_S]
@@ -276,13 +270,18 @@ class LiveView:
                 rec.log(f"{base}/fixes", rr.Points2D(_flip([(m.x, m.y) for m in recent]), radii=0.3,
                                                      colors=[self._rsu_colour(m.rsu_id) for m in recent], draw_order=9.0))
 
-    def _trail_due(self, entity: str) -> bool:
-        """Trails (hundreds of points each) are redrawn once a second, not every tick."""
+    def _trail(self, entity: str, poses: list, colour, draw_order: float) -> None:
+        """The last TRAIL_S seconds of poses (truth or fused) as a line; hundreds of points, so redrawn
+        once a second, not every tick."""
+        import rerun as rr
+
         now = time.monotonic()
         if now - self._trails.get(entity, 0.0) < TRAIL_PERIOD_S:
-            return False
+            return
         self._trails[entity] = now
-        return True
+        newest = poses[-1].t_ns
+        trail = [(m.x, m.y) for m in poses if (newest - m.t_ns) * 1e-9 <= TRAIL_S]
+        self.rec.log(entity, rr.LineStrips2D([_flip(trail)], radii=0.07, colors=colour, draw_order=draw_order))
 
     def _rsu_colour(self, rsu: str) -> tuple[int, int, int]:
         if rsu not in self._rsus:
