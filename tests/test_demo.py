@@ -25,9 +25,11 @@ ENOUGH_FIXES = 40
 
 def test_demo_runs_two_buses_through_four_rsus_and_reports(tmp_path):
     report = tmp_path / "report.json"
-    p = subprocess.Popen([sys.executable, "-m", "toptag", "demo", "--duration", "600", "--period", "1",
-                          "--report", str(report), "--logs", str(tmp_path / "logs")], cwd=REPO, env=clean_env(),
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err_path = tmp_path / "demo.stderr"  # a file, not a pipe: nothing here reads stderr while it runs
+    with open(err_path, "w") as err:
+        p = subprocess.Popen([sys.executable, "-m", "toptag", "demo", "--duration", "600", "--period", "1",
+                              "--report", str(report), "--logs", str(tmp_path / "logs")], cwd=REPO, env=clean_env(),
+                             stdout=subprocess.PIPE, stderr=err, text=True)
     out: list[str] = []
     reader = threading.Thread(target=lambda: out.extend(p.stdout), daemon=True)
     reader.start()
@@ -40,12 +42,12 @@ def test_demo_runs_two_buses_through_four_rsus_and_reports(tmp_path):
 
     try:
         assert wait_until(lambda: localized() or p.poll() is not None, 400, 60), "".join(out)[-3000:]
-        assert p.poll() is None, "".join(out)[-3000:] + p.stderr.read()[-3000:]
+        assert p.poll() is None, "".join(out)[-3000:] + err_path.read_text()[-3000:]
     finally:
         code = stop_process(p, signal.SIGINT, grace_s=120)  # Ctrl-C: stop every service, write the report
         reader.join(10)
     stdout = "".join(out)
-    assert code == 0, stdout[-3000:] + p.stderr.read()[-3000:]
+    assert code == 0, stdout[-3000:] + err_path.read_text()[-3000:]
     r = json.loads(report.read_text())
     assert set(r["rsus"]) == {"rsu-sw", "rsu-se", "rsu-ne", "rsu-nw"}
     assert all(v == 0 for v in r["exit_codes"].values()), r["exit_codes"]

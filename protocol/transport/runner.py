@@ -98,14 +98,19 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
     """Run one service process (see the module docstring). ``zenoh_config(args, inputs)`` builds the
     session's config when the default (the service's Zenoh options) is not enough (the router)."""
     setup_logging(args.log_level)
-    stopping = threading.Event()
+    signals: list[str] = []  # the signals received (a plain list: the handler takes no lock)
     service: Service | None = None
 
-    def on_signal(signum, _frame):
-        log.info("received %s, stopping", signal.Signals(signum).name)
-        stopping.set()
+    def stop_service(name: str) -> None:
+        log.info("received %s, stopping", name)
         if service is not None:
             service.stop()
+
+    def on_signal(signum, _frame):
+        # The handler interrupts the main thread anywhere, possibly inside the lock of the very Event
+        # that stop() sets: stop from another thread, which waits for that lock, never deadlocks.
+        signals.append(signal.Signals(signum).name)
+        threading.Thread(target=stop_service, args=(signals[-1],), name="stop", daemon=True).start()
 
     previous = {}
     if threading.current_thread() is threading.main_thread():
@@ -114,7 +119,7 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
         try:
             args.settings = load_service_settings(args, settings)
             inputs = load()
-            if stopping.is_set():
+            if signals:
                 return EXIT_OK
             conf = zenoh_config(args, inputs) if zenoh_config else zenoh_config_from_args(args)
             session = open_session(conf)
@@ -125,7 +130,7 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
             return report(prog, InputError(str(e)))
         try:
             service = build(session, inputs)
-            if stopping.is_set():
+            if signals:
                 service.stop()
             log.info("%s ready", describe(inputs))
             try:
