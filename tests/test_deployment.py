@@ -561,14 +561,15 @@ def test_separate_hosts_run_the_compose_topology_and_survive_a_cut_rsu_link(tmp_
         # cut the link of an RSU while it tracks bus-17 ...
         wait_for("a candidate RSU tracking bus-17", lambda: _tracking_rsu(_records(rec_path)) is not None)
         cut_rsu = _tracking_rsu(_records(rec_path))
-        t_cut = time.time()
         lab.link(cut_rsu, up=False)
+        t_cut = time.time()  # after the link is down: a frame captured before may still get through
 
         # ... until two other RSUs have carried bus-17 on their own ...
         def carried():
             f = _analyse(_records(rec_path), cut_rsu, t0, t_cut, math.inf, math.inf)
             others = [n for r, n in f["fixes_by_capture"]["during"].items() if r != cut_rsu and n >= CARRIED_FIXES]
-            return len(others) >= 2 and f["during_cut_in_view"].get(TRACKED_BUS, {}).get("seconds", 0) >= CARRIED_S
+            tracked = f["during_cut_in_view"].get(TRACKED_BUS, {})
+            return len(others) >= 2 and tracked.get("seconds", 0) >= CARRIED_S and len(tracked["fixes_by_rsu"]) >= 2
         wait_for("two other RSUs carrying bus-17", carried)
         t_restore = time.time()
         lab.link(cut_rsu, up=True)
@@ -613,9 +614,9 @@ def test_separate_hosts_run_the_compose_topology_and_survive_a_cut_rsu_link(tmp_
     assert len(tracked_before) >= TRACKING_FIXES, figures
     in_view = figures["during_cut_in_view"]
     assert in_view.get(TRACKED_BUS, {}).get("seconds", 0) >= CARRIED_S, figures
+    assert len(in_view[TRACKED_BUS]["fixes_by_rsu"]) >= 2, figures
     for bus, v in in_view.items():
         if v["seconds"] >= 2:
-            assert len(v["fixes_by_rsu"]) >= 2, (bus, figures)
             assert v["fused"].get("lost", 0) == 0, (bus, figures)
             assert v["fused_ok_rms_m"] is None or v["fused_ok_rms_m"] < 0.08, (bus, figures)
             assert v["covered_fraction"] >= 0.9, (bus, figures)
