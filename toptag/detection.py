@@ -6,6 +6,7 @@ OpenCV's convention ((0, 0) at its centre) and the camera's ideal (undistorted) 
 from __future__ import annotations
 
 import atexit
+import ctypes
 from dataclasses import dataclass, field
 
 import cv2
@@ -13,7 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from toptag.camera import Camera
-from toptag.vehicle import Vehicle
+from toptag.vehicle import FAMILY_BITS, Vehicle
 
 PUPIL_TO_OPENCV = -0.5
 
@@ -28,7 +29,10 @@ class DetectorSettings(BaseModel):
     refine_edges: bool = True
     decode_sharpening: float = Field(default=0.25, ge=0.0)
     nthreads: int = Field(default=1, ge=1)
-    max_hamming: int = Field(default=0, ge=0, le=3)
+    max_hamming: int = Field(default=0, ge=0, le=2)
+    # Cells of black border around the data bits: 1 for the official families (and toptag's roofs),
+    # 2 for Kalibr-style calibration grids (aprilgrid), whose corners are those of the wider border.
+    black_border: int = Field(default=1, ge=1, le=3)
 
 
 @dataclass
@@ -55,7 +59,13 @@ class RawDetection:
 
 
 class TagDetector:
-    """One pupil-apriltags detector per family set.
+    """One AprilTag detector for a set of families: one quad search, each quad decoded against every
+    family.
+
+    pupil-apriltags 1.0.4 adds only the first family of `families` it recognises (an if/elif chain):
+    built for {tag25h9, tag36h11} it silently never finds a tag36h11. The other families are therefore
+    added here through the C library's own `apriltag_detector_add_family_bits`, as pupil adds its first
+    one (up to 2 bit errors in the decode table; `max_hamming` then filters).
 
     pupil-apriltags 1.0.4's `Detector.__del__` frees the tag families before the detector that still
     reads them (pupil-labs/apriltags PR #65): a use-after-free that aborts the interpreter at exit now
@@ -65,20 +75,41 @@ class TagDetector:
     _alive: list["TagDetector"] = []
 
     def __init__(self, families=("tag36h11",), settings: DetectorSettings | None = None):
-        from pupil_apriltags import (
-            Detector,  # heavy import; only where detection happens
-        )
+        from pupil_apriltags import Detector  # heavy import; only where detection happens
+        from pupil_apriltags.bindings import _ApriltagFamily
 
         self.settings = settings or DetectorSettings()
         self.families = tuple(sorted(set(families)))
+        if not self.families:
+            raise ValueError("a detector needs at least one tag family")
+        unknown = [f for f in self.families if f not in FAMILY_BITS]
+        if unknown:
+            raise ValueError(f"unknown tag family {unknown[0]!r} (known: {', '.join(FAMILY_BITS)})")
         s = self.settings
-        self._detector = Detector(families=" ".join(self.families), nthreads=s.nthreads,
-                                  quad_decimate=s.quad_decimate, quad_sigma=s.quad_sigma,
-                                  refine_edges=int(s.refine_edges), decode_sharpening=s.decode_sharpening)
+        first, *others = self.families
+        d = Detector(families=first, nthreads=s.nthreads, quad_decimate=s.quad_decimate, quad_sigma=s.quad_sigma,
+                     refine_edges=int(s.refine_edges), decode_sharpening=s.decode_sharpening)
+        self._detector = d
+        TagDetector._alive.append(self)
         # pupil-apriltags 1.0.4 passes decode_sharpening through int(), turning 0.25 into 0: set it as the
         # C library expects (a double).
-        self._detector.tag_detector_ptr.contents.decode_sharpening = float(s.decode_sharpening)
-        TagDetector._alive.append(self)
+        d.tag_detector_ptr.contents.decode_sharpening = float(s.decode_sharpening)
+        for family in others:
+            create = getattr(d.libc, f"{family}_create")
+            create.restype = ctypes.POINTER(_ApriltagFamily)
+            d.tag_families[family] = create()
+            d.libc.apriltag_detector_add_family_bits(d.tag_detector_ptr, d.tag_families[family], 2)
+        if s.black_border != 1:
+            # The family structs are this detector's own (each *_create allocates one); decoding reads
+            # the border width and bit positions from them at every detection.
+            extra = s.black_border - 1
+            for tf in d.tag_families.values():
+                f = tf.contents
+                f.width_at_border += 2 * extra
+                f.total_width += 2 * extra
+                for i in range(f.nbits):
+                    f.bit_x[i] += extra
+                    f.bit_y[i] += extra
 
     def close(self) -> None:
         """Free the C detector, then its families; afterwards pupil's __del__ has nothing to free."""

@@ -1,0 +1,69 @@
+"""Detection restricted to code bags, on rendered frames through the real detector: buses of different
+tag families in one frame, and the RSU pipeline with both announced."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim.image_model import ImageModel
+from sim.render import PlacedVehicle, render
+from sim.scene import bundled_vehicle, rsu_camera
+from toptag.detection import DetectorSettings, TagDetector, detect_vehicle_tags
+from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
+from toptag.vehicle import Vehicle
+
+
+def bus(family: str, vid: str, ids=(3, 7)) -> Vehicle:
+    return Vehicle.from_dict({"id": vid, "height": 3.0, "family": family, "length": 6.0, "width": 2.0,
+                              "tags": [{"id": ids[0], "size": 1.6, "center": [1.5, 0.0]},
+                                       {"id": ids[1], "size": 1.6, "center": [-1.5, 0.0]}]})
+
+
+def two_buses_frame(family_b: str, seed: int = 3):
+    """The south-west RSU sees a tag36h11 bus and a `family_b` bus side by side, 9-12 m away."""
+    cam = rsu_camera("sw")
+    a, b = bus("tag36h11", "bus-a"), bus(family_b, "bus-b", (5, 6))
+    pa = PlacedVehicle(a, -4.0, -2.0, 0.3)
+    pb = PlacedVehicle(b, -1.0, -6.5, 0.2)
+    img = render(cam, [pa, pb], model=ImageModel(), rng=np.random.default_rng(seed))
+    return cam, (a, pa), (b, pb), img
+
+
+@pytest.mark.parametrize("family_b", ["tag25h9", "tag16h5"])
+def test_one_detector_finds_tags_of_two_families_in_one_frame(family_b):
+    cam, (a, pa), (b, pb), img = two_buses_frame(family_b)
+    det = TagDetector(("tag36h11", family_b))
+    try:
+        found = detect_vehicle_tags(det, img, cam, [a, b])
+    finally:
+        det.close()
+    assert sorted(o.tag_id for o in found[a.id]) == [3, 7]
+    assert sorted(o.tag_id for o in found[b.id]) == [5, 6]
+    for v, pv in ((a, pa), (b, pb)):
+        for o in found[v.id]:
+            truth = cam.project(pv.tag_corners_world(o.tag_id))
+            assert np.abs(o.raw_corners - truth).max() < 1.0
+
+
+def test_detector_families_are_checked():
+    with pytest.raises(ValueError, match="tag99h1"):
+        TagDetector(("tag36h11", "tag99h1"))
+    with pytest.raises(ValueError, match="at least one"):
+        TagDetector(())
+
+
+@pytest.mark.parametrize("family_b", ["tag25h9", "tag16h5"])
+def test_rsu_with_buses_of_two_families_announced_locates_both(family_b):
+    """The blinding bug: announcing a tag25h9 or tag16h5 bus at an RSU used to make every tag36h11 bus
+    there disappear (pupil-apriltags built a detector for one family only)."""
+    cam, (a, pa), (b, pb), img = two_buses_frame(family_b, seed=5)
+    p = RsuPipeline(cam, PipelineSettings(tracking=False, workers=1))
+    p.add_vehicle(a)
+    first = p.process(img, 0).vehicles[a.id].solution
+    assert first is not None and first.ok
+    p.add_vehicle(b)
+    res = p.process(img, 1)
+    for v, pv in ((a, pa), (b, pb)):
+        sol = res.vehicles[v.id].solution
+        assert sol is not None and sol.ok, (v.family, sol)
+        assert np.hypot(sol.x - pv.x, sol.y - pv.y) < 0.1
