@@ -24,14 +24,15 @@ def fix_to_message(fix: Fix, bus_id: str, intersection_id: str, publish_time_ns:
     return PoseFix(bus_id=bus_id, rsu_id=fix.source, intersection_id=intersection_id,
                    capture_time_ns=fix.t_ns, publish_time_ns=publish_time_ns, x=fix.x, y=fix.y, z=fix.z,
                    yaw=fix.yaw, covariance=fix.cov.tolist(), method=fix.method, tags_used=list(fix.tags),
-                   reprojection_rms_px=fix.rms_px, frame_seq=fix.seq, processing_ns=processing_ns)
+                   reprojection_rms_px=fix.rms_px, frame_seq=fix.seq, processing_ns=processing_ns,
+                   ambiguous=fix.ambiguous)
 
 
 def fix_from_message(m: PoseFix, arrival_ns: int | None = None) -> Fix:
     """The core fix of a received PoseFix; ``arrival_ns`` is when it arrived (for the filter's health)."""
     return Fix(t_ns=m.capture_time_ns, x=m.x, y=m.y, yaw=m.yaw, cov=m.covariance_matrix(), source=m.rsu_id,
                seq=m.frame_seq, arrival_ns=arrival_ns, z=m.z, method=m.method, tags=tuple(m.tags_used),
-               rms_px=m.reprojection_rms_px)
+               rms_px=m.reprojection_rms_px, ambiguous=m.ambiguous)
 
 
 def _ns_or_none(seconds: float) -> int | None:

@@ -225,6 +225,8 @@ class PoseFix(Message):
     frame_seq: Count
     processing_ns: DurationNs | None = Field(default=None, description="RSU time spent detecting and solving "
                                                                         "this frame (part of the latency)")
+    ambiguous: bool = Field(default=False, description="one tag whose mirrored pose fits as well: the covariance "
+                                                       "covers both poses (added in v1, default false)")
 
     @property
     def measurement_delta_ns(self) -> int:

@@ -280,19 +280,33 @@ class CameraRaster:
         return (self.xn.nbytes + self.yn.nbytes + self.radiance.nbytes + self.noise.nbytes
                 + sum(a.nbytes for a in self._finished.values()))
 
-    def finished_background(self, blur_sigma: float, gain: float) -> np.ndarray:
-        """The static background as the camera delivers it before noise (uint8, cached)."""
-        key = (float(blur_sigma), float(gain))
+    def finished_background(self, model) -> np.ndarray:
+        """The static background as the camera delivers it before noise (uint8, cached per optics)."""
+        key = (float(model.blur_sigma), float(model.gamma), float(model.defocus_px), float(model.gain),
+               float(model.vignetting))
         img = self._finished.get(key)
         if img is None:
-            f = self.radiance
-            if blur_sigma > 0:
-                f = cv2.GaussianBlur(f, (0, 0), blur_sigma)
-            img = cv2.convertScaleAbs(f, alpha=gain)
+            f = optics(self.radiance, model)
+            if model.vignetting:
+                f = f * self.vignette(model)
+            img = cv2.convertScaleAbs(f, alpha=model.gain)
             if len(self._finished) >= 4:
                 self._finished.pop(next(iter(self._finished)))
             self._finished[key] = img
         return img
+
+    def vignette(self, model) -> np.ndarray:
+        """float32 (H, W) factor on the stored (gamma-encoded) grey level: light falls off as
+        1 − vignetting·(r / r_corner)²."""
+        key = ("vignette", float(model.vignetting), float(model.gamma))
+        v = self._finished.get(key)
+        if v is None:
+            yy, xx = np.mgrid[0:self.height, 0:self.width].astype(np.float32)
+            cx, cy = self.camera.K[0, 2], self.camera.K[1, 2]
+            r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / float(max(cx, self.width - cx) ** 2 + max(cy, self.height - cy) ** 2)
+            v = np.power(1.0 - model.vignetting * r2, 1.0 / model.gamma).astype(np.float32)
+            self._finished[key] = v
+        return v
 
     def project_polygon(self, points_world) -> np.ndarray | None:
         """Pixel outline (M, 2) of a planar world polygon, clipped to the part in front of the camera
@@ -318,6 +332,34 @@ class CameraRaster:
                 pts.append(a + s * (b - a))
             n = cam.distort_normalized(np.vstack(pts))
         return n @ cam.K[:2, :2].T + cam.K[:2, 2]
+
+
+def optics_reach(model) -> int:
+    """Pixels an image point spreads to through the optics (blur and defocus)."""
+    if model.blur_sigma <= 0 and model.defocus_px <= 0:
+        return 0
+    return int(np.ceil(4 * model.blur_sigma + model.defocus_px)) + 1
+
+
+def optics(F: np.ndarray, model) -> np.ndarray:
+    """The lens's blur on a float32 image of stored grey levels: in linear light (grey/255)^gamma, a
+    Gaussian (blur_sigma) and a defocus disc (defocus_px), stored back as light^(1/gamma). With blurred
+    edges in linear light a real camera's dark side has the steeper stored gradient: detected edges sit
+    inside a tag's black square, as on real photographs."""
+    if model.blur_sigma <= 0 and model.defocus_px <= 0:
+        return F
+    g = float(model.gamma)
+    L = np.power(np.maximum(F, 0.0) / 255.0, g, dtype=np.float32) if g != 1.0 else F
+    if model.blur_sigma > 0:
+        L = cv2.GaussianBlur(L, (0, 0), model.blur_sigma)
+    if model.defocus_px > 0:
+        r = float(model.defocus_px)
+        n = int(np.ceil(r))
+        yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
+        # Pillbox with anti-aliased rim (coverage of each kernel pixel by the disc, approximately).
+        k = np.clip(r + 0.5 - np.hypot(xx, yy), 0.0, 1.0).astype(np.float32)
+        L = cv2.filter2D(L, -1, k / k.sum(), borderType=cv2.BORDER_REPLICATE)
+    return (255.0 * np.power(np.maximum(L, 0.0), 1.0 / g)).astype(np.float32) if g != 1.0 else L
 
 
 def _clip(poly: np.ndarray, axis: int, bound: float, keep_greater: bool) -> np.ndarray:

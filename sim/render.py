@@ -15,6 +15,7 @@ Only the image region that vehicles touch is recomputed per frame.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import cv2
@@ -22,7 +23,7 @@ import numpy as np
 
 from sim.image_model import ImageModel
 from sim.patterns import grid_size, tag_cells
-from sim.raster import CameraRaster, raster_for
+from sim.raster import CameraRaster, optics, optics_reach, raster_for
 from toptag.camera import Camera
 from toptag.geometry import rot_z, vehicle_to_world
 from toptag.vehicle import Vehicle
@@ -320,7 +321,62 @@ def _motion_kernel(rast: CameraRaster, box: _Box, exposure: float) -> np.ndarray
     return (k / k.sum()).astype(np.float32)
 
 
-def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model: ImageModel) -> _Layer | None:
+def _image_velocity(rast: CameraRaster, box: _Box) -> np.ndarray:
+    """Pixels per second at which the box's roof centre moves in the image."""
+    if box.speed == 0 and box.yaw_rate == 0:
+        return np.zeros(2)
+    dt = 0.01
+    pts = [[box.x + box.speed * s * np.cos(box.yaw), box.y + box.speed * s * np.sin(box.yaw), box.height]
+           for s in (-dt / 2, dt / 2)]
+    p = rast.camera.project(np.array(pts))
+    v = (p[1] - p[0]) / dt
+    return v if np.all(np.isfinite(v)) else np.zeros(2)
+
+
+def _rolling_shutter(layer: "_Layer", rast: CameraRaster, velocity: np.ndarray, readout: float) -> None:
+    """Row y is exposed (y/H − 1/2)·readout after the frame's middle row: the layer moves on by
+    velocity times that, row by row."""
+    h, w = layer.alpha.shape
+    t = ((np.arange(h, dtype=np.float32) + layer.y0) / rast.height - 0.5) * readout
+    xs = np.arange(w, dtype=np.float32)[None, :] - velocity[0] * t[:, None]
+    ys = np.arange(h, dtype=np.float32)[:, None] - velocity[1] * t[:, None] + 0 * xs
+    for name in ("alpha", "premult"):
+        setattr(layer, name, cv2.remap(getattr(layer, name), xs.astype(np.float32), ys.astype(np.float32),
+                                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0))
+
+
+def _roof_light(rast: CameraRaster, box: _Box, x0: int, y0: int, roof: np.ndarray, model: ImageModel,
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(factor, added grey levels) over the crop's roof pixels: a soft shadow edge across the roof at a
+    random place and direction (a pole, a sign, the bus's own roof unit), and a specular highlight."""
+    h, w = roof.shape
+    xn = rast.xn[y0:y0 + h, x0:x0 + w].astype(np.float64)
+    yn = rast.yn[y0:y0 + h, x0:x0 + w].astype(np.float64)
+    Rt, C, z = rast.camera.R.T, rast.center, box.height
+    d = np.stack([Rt[i, 0] * xn + Rt[i, 1] * yn + Rt[i, 2] for i in range(3)])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (z - C[2]) / d[2]
+    c, si = np.cos(box.yaw), np.sin(box.yaw)
+    X, Y = C[0] + s * d[0] - box.x, C[1] + s * d[1] - box.y
+    u, v = c * X + si * Y, -si * X + c * Y  # vehicle frame
+    factor = np.ones((h, w), np.float32)
+    added = np.zeros((h, w), np.float32)
+    if model.shadow > 0:
+        phi = rng.uniform(0, np.pi)
+        off = rng.uniform(-0.4, 0.4) * box.length / 2
+        dist = np.cos(phi) * u + np.sin(phi) * v - off
+        penumbra = 0.15  # m
+        dark = np.clip(0.5 + dist / penumbra, 0.0, 1.0)
+        factor = np.where(roof, 1.0 - model.shadow * dark, 1.0).astype(np.float32)
+    if model.glare > 0:
+        gu, gv = rng.uniform(-0.4, 0.4) * box.length, rng.uniform(-0.4, 0.4) * box.width
+        spot = np.exp(-((u - gu) ** 2 + (v - gv) ** 2) / (2 * 0.5 ** 2))
+        added = np.where(roof, model.glare * spot, 0.0).astype(np.float32)
+    return np.nan_to_num(factor, nan=1.0), np.nan_to_num(added)
+
+
+def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model: ImageModel,
+                  rng: np.random.Generator | None = None) -> _Layer | None:
     camera = rast.camera
     faces = _face_polygons(box, rast.center)
     polys = []
@@ -331,7 +387,9 @@ def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model
     if not polys:
         return None
     kernel = _motion_kernel(rast, box, model.exposure)
-    pad = 3 + (kernel.shape[0] // 2 if kernel is not None else 0)
+    velocity = _image_velocity(rast, box) if model.readout_s > 0 else np.zeros(2)
+    shutter = int(np.ceil(np.abs(velocity).max() * model.readout_s / 2))
+    pad = 3 + (kernel.shape[0] // 2 if kernel is not None else 0) + shutter
     allpts = np.vstack([p for _, p in polys])
     x0 = max(0, int(np.floor(allpts[:, 0].min())) - pad)
     y0 = max(0, int(np.floor(allpts[:, 1].min())) - pad)
@@ -436,10 +494,16 @@ def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model
                 sxn, syn = _subsample_rays(rast, ys + y0, xs + x0, offs)
                 base = np.full(sxn.shape, colors[ROOF], np.float32)
                 premult[ys, xs] = _tag_values(group, sxn, syn, base).mean(axis=1)
+    if pv is not None and (model.shadow > 0 or model.glare > 0) and rng is not None:
+        factor, added = _roof_light(rast, box, x0, y0, label == ROOF, model, rng)
+        premult = premult * factor + added * alpha
     if kernel is not None:
         alpha = cv2.filter2D(alpha, -1, kernel, borderType=cv2.BORDER_REPLICATE)
         premult = cv2.filter2D(premult, -1, kernel, borderType=cv2.BORDER_REPLICATE)
-    return _Layer(x0, y0, alpha, premult)
+    layer = _Layer(x0, y0, alpha, premult)
+    if shutter:
+        _rolling_shutter(layer, rast, velocity, model.readout_s)
+    return layer
 
 
 # ---- occlusion order ----------------------------------------------------------------------------
@@ -496,11 +560,11 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
     model = ImageModel() if model is None else model
     rng = np.random.default_rng() if rng is None else rng
     rast = raster_for(camera)
-    out = rast.finished_background(model.blur_sigma, model.gain).copy()
+    out = rast.finished_background(model).copy()
     items = [_as_box(o) for o in list(vehicles) + list(occluders)]
     layers = []
     for i in draw_order([b for b, _ in items], rast.center):
-        layer = _render_layer(rast, items[i][0], items[i][1], model)
+        layer = _render_layer(rast, items[i][0], items[i][1], model, rng)
         if layer is not None:
             layers.append(layer)
     if layers:
@@ -509,8 +573,44 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
         cv2.setRNGSeed(int(rng.integers(1, 2 ** 31 - 1)))
         cv2.randn(rast.noise, 0.0, float(model.noise_sigma))
         cv2.add(out, rast.noise, dst=out, dtype=cv2.CV_8U)
-    if model.jpeg_quality > 0:
+    if model.codec != "jpeg":
+        out = video_roundtrip(out, model.codec, model.video_crf)
+    elif model.jpeg_quality > 0:
         out = cv2.imdecode(np.frombuffer(encode_jpeg(out, model.jpeg_quality), np.uint8), cv2.IMREAD_GRAYSCALE)
+    return out
+
+
+_CODECS = threading.local()
+
+
+def video_roundtrip(image: np.ndarray, codec: str, crf: int) -> np.ndarray:
+    """The frame as an RSU's video stream delivers it: encoded by x264 / x265 at the constant rate factor
+    crf as an intra frame (keyint 1, 4:2:0, as cameras stream), decoded again (PyAV's FFmpeg). One
+    encoder and decoder per thread and format, reused frame after frame."""
+    h, w = image.shape
+    W, H = w - w % 2, h - h % 2
+    key = (codec, int(crf), W, H)
+    pairs = _CODECS.__dict__.setdefault("pairs", {})
+    if key not in pairs:
+        import av
+
+        enc = av.CodecContext.create({"h264": "libx264", "h265": "libx265"}[codec], "w")
+        enc.width, enc.height, enc.pix_fmt = W, H, "yuv420p"
+        params = "keyint=1" if codec == "h264" else "keyint=1:log-level=error"
+        enc.options = {"crf": str(int(crf)), "preset": "veryfast", "tune": "zerolatency",
+                       f"{'x264' if codec == 'h264' else 'x265'}-params": params}
+        pairs[key] = [enc, av.CodecContext.create({"h264": "h264", "h265": "hevc"}[codec], "r"), 0]
+    enc, dec, n = pairs[key]
+    import av
+
+    frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image[:H, :W]), format="gray").reformat(format="yuv420p")
+    frame.pts = n
+    pairs[key][2] = n + 1
+    frames = [f for p in enc.encode(frame) for f in dec.decode(p)]
+    if not frames:
+        raise RuntimeError(f"{codec} encoder returned no frame")
+    out = image.copy()
+    out[:H, :W] = frames[-1].to_ndarray(format="gray")
     return out
 
 
@@ -535,7 +635,7 @@ def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out:
     y0 = min(l.y0 for l in layers)
     x1 = max(l.x0 + l.alpha.shape[1] for l in layers)
     y1 = max(l.y0 + l.alpha.shape[0] for l in layers)
-    mb = int(np.ceil(4 * model.blur_sigma)) + 1 if model.blur_sigma > 0 else 0
+    mb = optics_reach(model)
     # Paste region: the layers plus the blur reach; crop: plus the blur's input context.
     px0, py0 = max(0, x0 - mb), max(0, y0 - mb)
     px1, py1 = min(rast.width, x1 + mb), min(rast.height, y1 + mb)
@@ -546,7 +646,8 @@ def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out:
         h, w = l.alpha.shape
         sl = (slice(l.y0 - cy0, l.y0 - cy0 + h), slice(l.x0 - cx0, l.x0 - cx0 + w))
         F[sl] = F[sl] * (1.0 - l.alpha) + l.premult
-    if mb:
-        F = cv2.GaussianBlur(F, (0, 0), model.blur_sigma)
+    F = optics(F, model)
+    if model.vignetting:
+        F = F * rast.vignette(model)[cy0:cy1, cx0:cx1]
     img = cv2.convertScaleAbs(F, alpha=model.gain)
     out[py0:py1, px0:px1] = img[py0 - cy0:py1 - cy0, px0 - cx0:px1 - cx0]

@@ -436,7 +436,7 @@ class World:
             probe = [PlacedVehicle(b.vehicle, float(self.center[0]), float(self.center[1]), 0.3, speed=5.0)]
         rng = np.random.default_rng(0)
         for cam in self.cameras:
-            raster_for(cam).finished_background(self.model.blur_sigma, self.model.gain)
+            raster_for(cam).finished_background(self.model)
             render_jpeg(cam, probe, (), self.model, rng)
 
     # ---- checks ----------------------------------------------------------------------------

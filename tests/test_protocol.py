@@ -222,6 +222,18 @@ def test_pose_fix_measurement_delta():
     assert fix.measurement_delta_ns == fix.publish_time_ns - fix.capture_time_ns == 35_000_000
 
 
+def test_pose_fix_carries_the_ambiguity_flag():
+    """A lone tag's mirrored pose (issue 11) reaches the bus: the flag survives the wire; a fix without it
+    (as v1 senders wrote them) is not ambiguous."""
+    fix = SAMPLES["PoseFix"]
+    assert fix.ambiguous is False and decode(encode(fix), PoseFix).ambiguous is False
+    flagged = fix.model_copy(update={"ambiguous": True})
+    assert decode(encode(flagged), PoseFix).ambiguous is True
+    d = json.loads(encode(fix))
+    d.pop("ambiguous")
+    assert decode(json.dumps(d).encode(), PoseFix).ambiguous is False
+
+
 # ---- keys -------------------------------------------------------------------------------------
 
 KEY_TABLE = [

@@ -324,7 +324,7 @@ def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launc
     # the frame shows the bus where the truth puts it at the capture time
     from sim.raster import raster_for
     cam = world.camera("rsu-sw")
-    bg = raster_for(cam).finished_background(world.model.blur_sigma, world.model.gain).astype(float)
+    bg = raster_for(cam).finished_background(world.model).astype(float)
 
     def centre_offset(m):  # where the truth puts bus-17's roof centre in that frame
         s = world.state("bus-17", m.capture_time_ns)

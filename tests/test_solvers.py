@@ -21,7 +21,7 @@ from toptag.solvers import (
     position_crlb,
     solve,
 )
-from toptag.solvers.level import TURN_RATIO, edge_whitener
+from toptag.solvers.level import TURN_RATIO, edge_whitener, noise_scale
 
 pytestmark = pytest.mark.unit
 
@@ -32,9 +32,9 @@ CONFIGS = [("bas", "paper"), ("hopt", "paper"), ("sopt", "paper"), ("sopt", "pri
 LEVEL = ("level", "principled")  # weighting does not apply to it
 ALL = CONFIGS + [LEVEL]
 NO_LIMITS = Limits(max_position_sigma_m=math.inf)
-# The detector's corner noise as the study measured it at 960×720: edge-line offsets of ~0.03 px, turns
-# sqrt(3) times that (toptag/solvers/level.py); 0.06 px per corner coordinate.
-EDGE_OFFSET_PX = 0.03
+# Real cameras' corner noise (docs/real-data.md): edge-line offsets of ~0.1 px, turns and each tag's
+# common offset about as large (toptag/solvers/level.py); 0.17 px per corner coordinate.
+EDGE_OFFSET_PX = 0.1
 ROT, TRANS = math.radians(0.05), 0.02  # the image model's default RSU calibration error
 
 
@@ -424,7 +424,7 @@ def test_level_covariance_matches_monte_carlo(noise, distance, known):
         dz = rng.uniform(-0.1, 0.1)
         if noise == "edge":
             obs, kw = observe_edges(vehicle, pose, rng=rng, dz=dz), {}
-            sigma = 2.0 * EDGE_OFFSET_PX  # per corner coordinate: sqrt(1 + 3) x the offset
+            sigma = noise_scale(TURN_RATIO) * EDGE_OFFSET_PX  # per corner coordinate
         else:
             obs, kw, sigma = observe(vehicle, pose, noise=0.3, rng=rng, dz=dz), {"turn_ratio": None}, 0.3
         sol = solve(vehicle, obs, "level", sigma_px=sigma if known else None, robust=not known,
@@ -457,9 +457,9 @@ def with_shared_errors(obs, bias, rng):
 
 @pytest.mark.parametrize("distance", [6.0, 14.0])
 def test_level_covariance_carries_errors_the_corners_share(distance):
-    """Errors common to a tag's or an image's corners leave no residual: with the detector-bias model the
-    covariance still covers them (mean NEES near 3); without it the fixes would be several times
-    overconfident, which a filter's gate would punish."""
+    """Errors common to an image's corners leave no residual: with the detector-bias model the covariance
+    still covers them (mean NEES near 3); without it the fixes are overconfident. (Each tag's own common
+    edge offset is in the noise model itself: observe_edges draws it.)"""
     rng = np.random.default_rng(23)
     vehicle = bundled_vehicle("bus_double")
     pose = at_distance(distance)
@@ -467,12 +467,12 @@ def test_level_covariance_carries_errors_the_corners_share(distance):
     for _ in range(150):
         obs = with_shared_errors(observe_edges(vehicle, pose, rng=rng, dz=rng.uniform(-0.1, 0.1)), DETECTOR_BIAS, rng)
         for name, bias in (("model", DETECTOR_BIAS), ("none", NO_BIAS)):
-            sol = solve(vehicle, obs, "level", sigma_px=2.0 * EDGE_OFFSET_PX, limits=NO_LIMITS, detector_bias=bias)
+            sol = solve(vehicle, obs, "level", sigma_px=noise_scale(TURN_RATIO) * EDGE_OFFSET_PX, limits=NO_LIMITS, detector_bias=bias)
             assert sol.ok, sol.error
             e = pose_error(sol, pose)
             nees[name].append(e @ np.linalg.solve(sol.covariance, e))
     assert 2.0 < np.mean(nees["model"]) < 4.5
-    assert np.mean(nees["none"]) > 2.0 * np.mean(nees["model"])
+    assert np.mean(nees["none"]) > 1.15 * np.mean(nees["model"])
 
 
 def test_level_reaches_the_cramer_rao_bound_and_beats_sopt():
@@ -496,10 +496,11 @@ def test_level_reaches_the_cramer_rao_bound_and_beats_sopt():
 
 
 def test_a_garbled_tag_at_16_m_is_dropped():
-    """The detector's garbled tags (one corner 1.5 px off, about 1 % of detections) among real corner noise
-    (0.06 px), sigma unknown: the outlier test used to judge a pair with a 0.5 px noise prior and let
-    them through; now H.Opt., S.Opt. and the level solver drop them, and the pose is as good as from the
-    good tag alone."""
+    """The detector's garbled tags (one corner 3 px off; about 1 % of detections have one or two corners
+    0.5-4 px off) among real corner noise (0.17 px per coordinate), sigma unknown: H.Opt., S.Opt. and the
+    level solver drop them (at real noise a 1.5 px garble is within what the 1 %-false-drop test must
+    allow: dropped 7 % of the time; the level solver weighs down what is left), and the pose is as good
+    as from the good tag alone."""
     rng = np.random.default_rng(23)
     vehicle = bundled_vehicle("bus_double")
     pose = at_distance(16.0, yaw=0.7)
@@ -509,7 +510,7 @@ def test_a_garbled_tag_at_16_m_is_dropped():
     for _ in range(n):
         obs = observe_edges(vehicle, pose, rng=rng, dz=rng.uniform(-0.1, 0.1))
         a = rng.uniform(0, 2 * math.pi)
-        bad = [garble(obs[0], int(rng.integers(4)), 1.5 * np.array([math.cos(a), math.sin(a)])), obs[1]]
+        bad = [garble(obs[0], int(rng.integers(4)), 3.0 * np.array([math.cos(a), math.sin(a)])), obs[1]]
         for method in dropped:
             sol = solve(vehicle, bad, method, weighting="principled", limits=NO_LIMITS)
             assert sol.ok, sol.error
@@ -517,9 +518,9 @@ def test_a_garbled_tag_at_16_m_is_dropped():
             if method == "level":
                 err_bad.append(math.hypot(*pose_error(sol, pose)[:2]))
         err_alone.append(math.hypot(*pose_error(solve(vehicle, obs[1:], "level", limits=NO_LIMITS), pose)[:2]))
-    assert all(v >= 0.9 * n for v in dropped.values()), dropped
+    assert all(v >= 0.8 * n for v in dropped.values()), dropped
     rms = lambda e: math.sqrt(np.mean(np.square(e)))  # noqa: E731
-    assert rms(err_bad) < 1.2 * rms(err_alone)
+    assert rms(err_bad) < 1.6 * rms(err_alone)
 
 
 def test_the_level_solver_weighs_down_a_garbled_tag_the_outlier_test_keeps():
@@ -533,7 +534,7 @@ def test_the_level_solver_weighs_down_a_garbled_tag_the_outlier_test_keeps():
     e_level, e_sopt, e_clean = [], [], []
     for _ in range(20):
         obs = observe_edges(vehicle, pose, rng=rng, dz=rng.uniform(-0.1, 0.1))
-        bad = [garble(obs[0], 2, np.array([1.6, -1.2])), obs[1]]
+        bad = [garble(obs[0], 2, np.array([3.2, -2.4])), obs[1]]
         level = solve(vehicle, bad, "level", limits=blind)
         sopt = solve(vehicle, bad, "sopt", weighting="principled", limits=blind)
         assert level.ok and sopt.ok and not sopt.dropped_tags
@@ -543,7 +544,7 @@ def test_the_level_solver_weighs_down_a_garbled_tag_the_outlier_test_keeps():
         e_clean.append(math.hypot(*pose_error(solve(vehicle, obs[1:], "level", limits=blind), pose)[:2]))
     rms = lambda e: math.sqrt(np.mean(np.square(e)))  # noqa: E731
     assert rms(e_level) < 1.3 * rms(e_clean)
-    assert rms(e_sopt) > 3 * rms(e_level)
+    assert rms(e_sopt) > 1.5 * rms(e_level)
 
 
 @pytest.mark.parametrize("noise", ["detector", "iid 0.3 px"])
@@ -642,3 +643,34 @@ def test_cameras_that_disagree_beyond_their_calibration_are_not_trusted(method):
                 distrusted += 1
                 assert {d["camera"] for d in sol.dropped_tags} == {"rsu-se"}
         assert distrusted >= 0.8 * n, (rot, shift, distrusted)
+
+
+# ---- pose ambiguity -----------------------------------------------------------------------------
+def test_a_lone_tag_whose_mirrored_pose_fits_is_flagged_and_its_covariance_covers_it():
+    """IPPE's second solution: a lone tag seen nearly along its normal from 40 m fits its mirrored pose
+    (tilted 12-18 deg) about as well, so every solver flags it and widens its covariance; at the RSU's
+    oblique view the mirror is tilted far beyond any roof, and nothing is flagged."""
+    from toptag.camera import Camera
+    from toptag.solvers.ambiguity import covering_covariance
+
+    vehicle = bundled_vehicle("bus_single")
+    down = Camera.looking_at("down", [0.0, 0.0, 43.0], 0.0, math.radians(90), math.radians(50), 960, 720)
+    frontal = observe(vehicle, (5.0, 1.0, 0.4), (down,))  # 7 deg off the line of sight
+    for method, weighting in ALL:
+        sol = solve(vehicle, frontal, method, weighting=weighting)
+        assert sol.ok and sol.ambiguous and sol.to_dict()["ambiguous"], method
+    rng = np.random.default_rng(31)
+    flagged = 0
+    for _ in range(20):
+        noisy = observe(vehicle, (4.0, 1.0, 0.4), (down,), noise=0.2, rng=rng)
+        sol = solve(vehicle, noisy, "level")
+        plain = solve(vehicle, noisy, "level", limits=Limits(max_tilt_deg=0.0))  # no mirror can pass
+        assert not plain.ambiguous
+        if sol.ambiguous:
+            flagged += 1
+            assert np.all(np.linalg.eigvalsh(sol.covariance - plain.covariance) > -1e-12)
+        oblique = solve(vehicle, observe(vehicle, at_distance(12.0), noise=0.2, rng=rng), "level")
+        assert oblique.ok and not oblique.ambiguous
+    assert flagged >= 3
+    cov = covering_covariance(np.eye(3) * 1e-4, np.array([0.0, 0.0, math.pi - 0.01]), np.array([0.1, 0.0, -math.pi + 0.01]))
+    assert math.isclose(cov[0, 0], 1e-4 + 0.01) and math.isclose(cov[2, 2], 1e-4 + 0.02 ** 2, rel_tol=1e-6)

@@ -29,6 +29,9 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("eval", "fusion"): ("sim.studies.fusion:main", "fused pose error against fix latency (study)"),
     ("eval", "replay"): ("services.replay_eval:main", "re-run a bus's fusion offline on a recording"),
     ("eval", "paper"): ("sim.studies.paper:main", "reproduce the paper's simulation study"),
+    ("eval", "real"): ("sim.studies.real:main", "detection and every solver on real photographs with truth"),
+    ("eval", "imagemodel"): ("sim.studies.imagemodel:main", "rendered vs real corner errors (simulator calibration)"),
+    ("eval", "hamming"): ("sim.studies.hamming:main", "tags recovered vs false decodes per admitted bit error"),
 }
 
 

@@ -17,6 +17,11 @@ from toptag.camera import Camera
 from toptag.vehicle import FAMILY_BITS, Vehicle
 
 PUPIL_TO_OPENCV = -0.5
+# The default Hamming gate per family, from `toptag eval hamming` (docs/real-data.md): one bit error
+# recovers 2 of AprilTag's 46 reference tags on its test photos, and no false decode of tag36h11 or
+# tag25h9 with 0 or 1 bit errors showed up in 45 real and rendered cluttered frames (2 bit errors: 1 and
+# 6); tag16h5 (minimum distance 5) decoded falsely 64 times with 1 bit error in the same frames.
+FAMILY_MAX_HAMMING = {"tag36h11": 1, "tag25h9": 1, "tag16h5": 0}
 
 
 class DetectorSettings(BaseModel):
@@ -29,10 +34,20 @@ class DetectorSettings(BaseModel):
     refine_edges: bool = True
     decode_sharpening: float = Field(default=0.25, ge=0.0)
     nthreads: int = Field(default=1, ge=1)
-    max_hamming: int = Field(default=0, ge=0, le=2)
+    # Bit errors admitted per tag; None: the family's gate (FAMILY_MAX_HAMMING).
+    max_hamming: int | None = Field(default=None, ge=0, le=2)
     # Cells of black border around the data bits: 1 for the official families (and toptag's roofs),
     # 2 for Kalibr-style calibration grids (aprilgrid), whose corners are those of the wider border.
     black_border: int = Field(default=1, ge=1, le=3)
+    # AprilTag's edge refinement places a tag's edges inside the true black square on real cameras
+    # (gamma-encoded, blurred edges: the gradient peaks on the dark side). Measured on real photographs
+    # against saddle-point truth (docs/real-data.md): corners 0.19-0.25 px inward along the diagonal,
+    # i.e. edges 0.13-0.18 px. Each edge line is moved outward by this much (0: as detected).
+    edge_shift_px: float = Field(default=0.15, ge=-1.0, le=1.0)
+    # Edge refinement makes corners more precise but loses some small, oblique tags that decode without
+    # it (2 of the 46 that AprilTag's reference finds on its test photos): a second decode pass without
+    # it (at full resolution) adds the tags the first pass did not find.
+    unrefined_pass: bool = True
 
 
 @dataclass
@@ -132,11 +147,14 @@ class TagDetector:
         for det in list(cls._alive):
             det.close()
 
-    def detect_raw(self, gray: np.ndarray, offset=(0, 0), upsample: int = 1) -> list[RawDetection]:
+    def detect_raw(self, gray: np.ndarray, offset=(0, 0), upsample: int = 1,
+                   unrefined_pass: bool | None = None) -> list[RawDetection]:
         """Every tag of the detector's families in `gray` (uint8, 2-D); `offset` is the (x, y) of
         gray's first pixel in the full frame when gray is a crop. `upsample` > 1 enlarges the image
         (bicubic) before detection: far tags with cells of 1-2 px are decoded far more reliably and
-        their corners are more precise."""
+        their corners are more precise. unrefined_pass: the second decode pass without edge refinement
+        (default: the settings'; the RSU's tracking crops, where the tag is expected and small ones
+        are enlarged, skip it)."""
         if gray.dtype != np.uint8 or gray.ndim != 2:
             raise ValueError("detector input must be a 2-D uint8 image")
         if self._detector.tag_detector_ptr is None:
@@ -147,14 +165,64 @@ class TagDetector:
         # pupil's corner (0, 0) is the first pixel's corner; in the enlarged image that is the same
         # point as in the original, so scale first, then move to OpenCV's pixel-centre convention.
         shift = np.array([offset[0] + PUPIL_TO_OPENCV, offset[1] + PUPIL_TO_OPENCV])
+        s = self.settings
+        out = self._decoded(img, upsample, shift)
+        second = s.unrefined_pass if unrefined_pass is None else unrefined_pass
+        if s.refine_edges and second and s.quad_decimate == 1.0:
+            ptr = self._detector.tag_detector_ptr.contents
+            ptr.refine_edges = 0
+            try:
+                extra = self._decoded(img, upsample, shift)
+            finally:
+                ptr.refine_edges = 1
+            out += [d for d in extra if not any(_same_tag(d, o) for o in out)]
+        return out
+
+    def gate(self, family: str) -> int:
+        """Bit errors admitted for a family's tags."""
+        m = self.settings.max_hamming
+        return FAMILY_MAX_HAMMING.get(family, 0) if m is None else m
+
+    def _decoded(self, img: np.ndarray, upsample: int, shift: np.ndarray) -> list[RawDetection]:
         out = []
         for d in self._detector.detect(img):
-            if d.hamming > self.settings.max_hamming:
-                continue
             fam = d.tag_family.decode() if isinstance(d.tag_family, bytes) else str(d.tag_family)
-            out.append(RawDetection(fam, int(d.tag_id), np.asarray(d.corners, dtype=float) / upsample + shift,
-                                    int(d.hamming), float(d.decision_margin)))
+            if d.hamming > self.gate(fam):
+                continue
+            corners = shift_edges(np.asarray(d.corners, dtype=float) / upsample, self.settings.edge_shift_px)
+            out.append(RawDetection(fam, int(d.tag_id), corners + shift, int(d.hamming), float(d.decision_margin)))
         return out
+
+
+def _same_tag(a: RawDetection, b: RawDetection) -> bool:
+    size = float(np.ptp(b.corners, axis=0).max())
+    return (a.family == b.family and a.tag_id == b.tag_id
+            and float(np.linalg.norm(a.corners.mean(axis=0) - b.corners.mean(axis=0))) < 0.5 * size)
+
+
+def shift_edges(quad: np.ndarray, distance: float) -> np.ndarray:
+    """The quad (4, 2) with each edge line moved `distance` px outward (negative: inward): each corner
+    goes to the intersection of its two moved edges."""
+    if distance == 0.0:
+        return quad
+    centre = quad.mean(axis=0)
+    out = np.empty_like(quad)
+    lines = []
+    for a in range(4):
+        p, q = quad[a], quad[(a + 1) % 4]
+        n = np.array([q[1] - p[1], p[0] - q[0]])
+        n /= np.linalg.norm(n) or 1.0
+        if n @ (p - centre) < 0:
+            n = -n
+        lines.append((n, n @ p + distance))  # n · x = c
+    for a in range(4):
+        (n1, c1), (n2, c2) = lines[a - 1], lines[a]  # the edges ending and starting at corner a
+        A = np.array([n1, n2])
+        if abs(np.linalg.det(A)) < 1e-9:
+            out[a] = quad[a]
+        else:
+            out[a] = np.linalg.solve(A, [c1, c2])
+    return out
 
 
 def assign_to_vehicles(raw: list[RawDetection], camera: Camera,

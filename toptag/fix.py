@@ -34,6 +34,7 @@ class Fix:
     method: str | None = None
     tags: tuple[int, ...] = field(default=())
     rms_px: float | None = None
+    ambiguous: bool = False  # a lone tag whose mirrored pose fits as well: cov covers both (issue 11)
 
     def __post_init__(self):
         self.t_ns = int(self.t_ns)
@@ -51,7 +52,7 @@ class Fix:
             raise ValueError(f"no fix from a failed solution: {solution.error}")
         return cls(t_ns=t_ns, x=solution.x, y=solution.y, yaw=solution.yaw, cov=solution.covariance,
                    source=source, seq=seq, z=solution.z, method=solution.method, tags=tuple(solution.tags),
-                   rms_px=float(solution.rms_px))
+                   rms_px=float(solution.rms_px), ambiguous=bool(solution.ambiguous))
 
     @property
     def key(self) -> tuple:

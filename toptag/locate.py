@@ -21,7 +21,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "S.Opt.; hopt: H.Opt.; bas: Bas.")
     p.add_argument("--weighting", choices=("paper", "principled"), default="principled",
                    help="S.Opt. residual weighting (paper: mu = 1; principled: sigma_px / sigma_h)")
-    p.add_argument("--max-hamming", type=int, default=0, help="accepted bit errors per tag (default 0)")
+    p.add_argument("--max-hamming", type=int, default=None,
+                   help="accepted bit errors per tag (default: the family's gate: 1 for tag36h11 and tag25h9, "
+                        "0 for tag16h5)")
     p.add_argument("--search", choices=("pyramid", "full"), default="pyramid",
                    help="pyramid: row bands at the coarsest level that resolves a tag, confirmed at full "
                         "resolution (default); full: the whole frame at --quad-decimate")

@@ -82,6 +82,7 @@ class DetectJob:
     box: Box
     decimate: float = 1.0
     upsample: int = 1
+    searching: bool = True  # no tag known there yet: decode thoroughly (DetectorSettings.unrefined_pass)
 
     @property
     def cost(self) -> float:
@@ -129,7 +130,8 @@ class _DetectorPool:
 
         def one(job: DetectJob):
             b = job.box
-            return self._detector(job.decimate).detect_raw(gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample)
+            return self._detector(job.decimate).detect_raw(gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample,
+                                                           None if job.searching else False)
 
         if self.executor is None or len(jobs) < 2:
             return [one(j) for j in jobs]
@@ -282,7 +284,8 @@ class RsuPipeline:
                              p.z_margin, self.settings.crop_pad_px)
             if box is not None:
                 corners = vehicle_to_world(vehicle.tag_corners(tid), p.x, p.y, p.yaw, p.z)
-                jobs.append(DetectJob(box, 1.0, self._upsample_for(projected_side_px(self.camera, corners))))
+                jobs.append(DetectJob(box, 1.0, self._upsample_for(projected_side_px(self.camera, corners)),
+                                      searching=False))
         return jobs
 
     def _upsample_for(self, side_px: float) -> int:
@@ -308,8 +311,9 @@ def _merge_jobs(jobs: list[DetectJob]) -> list[DetectJob]:
     merged = merge_boxes([j.box for j in jobs])
     out = []
     for box in merged:
-        up = max((j.upsample for j in jobs if box.overlaps(j.box)), default=1)
-        out.append(DetectJob(box, 1.0, up))
+        parts = [j for j in jobs if box.overlaps(j.box)]
+        up = max((j.upsample for j in parts), default=1)
+        out.append(DetectJob(box, 1.0, up, searching=any(j.searching for j in parts) or not parts))
     return out
 
 

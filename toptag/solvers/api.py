@@ -6,6 +6,7 @@ import math
 import numpy as np
 
 from toptag.detection import TagObservation
+from toptag.solvers.ambiguity import covering_covariance, mirror_candidate
 from toptag.solvers.bas import fit_bas
 from toptag.solvers.common import SIGMA_H_DEFAULT, Fit, PoseSolution
 from toptag.solvers.hopt import fit_hopt, initial_pose
@@ -59,6 +60,8 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
     synthetic independent noise).
     robust: drop tags whose corners disagree with the rest (and, level, weigh down tags whose own
     corners misfit a tag's shape). limits: when to refuse a pose.
+    A lone tag whose mirrored pose (IPPE's second solution) is also plausible comes back with
+    ambiguous=True and a covariance that covers both poses.
     Never raises on bad data: an unusable or implausible result comes back with ok=False and `error`."""
     method = canonical_method(method)
     if weighting not in WEIGHTINGS:
@@ -81,8 +84,8 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
         return PoseSolution(ok=False, method=method, dropped_tags=dropped,
                             error=f"no usable tag observations ({why})")
     corners = build_corners(vehicle, usable)
-    # The level solver's corner-noise model also judges its outliers; the others assume i.i.d. corners.
-    noise_model = turn_ratio if method == "level" else None
+    # The corner-noise model (edge lines, each tag's common offset) judges every solver's outliers.
+    noise_model = turn_ratio
     # Hopeless data (garbage corners) produce infinities on the way to an ok=False; not worth warnings.
     with np.errstate(all="ignore"):
         keep, screened = list(range(len(corners.units))), None
@@ -117,6 +120,10 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
         return _failed(method, corners, dropped, error, fit)
     sol = fit.solution()
     sol.dropped_tags = dropped
+    mirror = mirror_candidate(corners, sigma_px or fit.sigma_px, limits.max_tilt_deg)
+    if mirror is not None:
+        sol.ambiguous = True
+        sol.covariance = covering_covariance(sol.covariance, sol.pose(), mirror)
     return sol
 
 

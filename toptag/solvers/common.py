@@ -10,9 +10,13 @@ from toptag.geometry import wrap_angle
 from toptag.solvers.model import IX, IY, IYAW, Corners
 
 SIGMA_H_DEFAULT = 0.2 / math.sqrt(12.0)  # a uniform ±10 cm roof bounce
-SIGMA_FLOOR_PX = 0.1  # no detector is better than this; keeps exact data from claiming zero variance
-SIGMA_PRIOR_PX = 0.5  # typical corner noise, pooled in when the residual has too few degrees of freedom
-MIN_SIGMA_DOF = 4.0
+# Corner noise per pixel coordinate, from real photographs (docs/real-data.md: toptag's detection path
+# against saddle-point truth on a hand-held board (EuRoC) and a phone photo of a grid; 0.15-0.2 px).
+# The prior is pooled into every estimate from a fit's residuals, worth PRIOR_DOF degrees of freedom;
+# the floor keeps exact or few-dof data from claiming a noise no camera has.
+SIGMA_PRIOR_PX = 0.17
+SIGMA_FLOOR_PX = 0.05
+PRIOR_DOF = 2.0
 
 
 @dataclass
@@ -40,6 +44,9 @@ class PoseSolution:
     error: str | None = None
     sigma_px: float = math.nan  # pixel noise the covariance assumes (given or estimated)
     n_corners: int = 0
+    # One tag whose mirrored pose (IPPE's second solution) fits as well and is level enough: the
+    # covariance then covers both poses (solvers/ambiguity.py).
+    ambiguous: bool = False
 
     @property
     def position_sigma(self) -> float:
@@ -69,6 +76,7 @@ class PoseSolution:
             "dropped_tags": [{"tag": int(d["tag"]), "camera": str(d["camera"]), "reason": str(d["reason"])}
                              for d in self.dropped_tags],
             "cameras": [str(c) for c in self.cameras],
+            "ambiguous": bool(self.ambiguous),
             "error": self.error,
         }
 
@@ -117,16 +125,12 @@ def rms(r_px: np.ndarray) -> float:
 
 def estimate_sigma(ss: float, dof: float, floor: float = SIGMA_FLOOR_PX,
                    prior: float = SIGMA_PRIOR_PX) -> float:
-    """Per-coordinate pixel noise from a residual sum of squares with `dof` degrees of freedom.
-
-    With few degrees of freedom the estimate is nearly random (one tag in Bas. leaves 2), so it is
-    pooled with a typical detector noise until MIN_SIGMA_DOF are reached."""
+    """Per-coordinate pixel noise from a solve's own residual sum of squares with `dof` degrees of
+    freedom, pooled with the real cameras' typical noise `prior` worth PRIOR_DOF degrees of freedom (a
+    lone tag leaves Bas. 0 and H.Opt. 5: their own estimate alone is nearly random), never below floor."""
     dof = max(float(dof), 0.0)
-    if dof >= MIN_SIGMA_DOF:
-        s2 = ss / dof
-    else:
-        s2 = (ss + (MIN_SIGMA_DOF - dof) * prior ** 2) / MIN_SIGMA_DOF
-    return float(max(math.sqrt(max(s2, 0.0)), floor))
+    s2 = (max(ss, 0.0) + PRIOR_DOF * prior ** 2) / (dof + PRIOR_DOF)
+    return float(max(math.sqrt(s2), floor))
 
 
 def safe_inverse(A: np.ndarray) -> np.ndarray:

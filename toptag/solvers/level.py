@@ -8,12 +8,18 @@ the Cramér–Rao bound of the level roof.
 
 Corner noise. An AprilTag corner is the intersection of two fitted edge lines, so corner errors are not
 independent per coordinate: each edge line has an offset error (moved along its normal) and a turn
-(its endpoints moved oppositely along the normal), independent between edges; a line fitted to evenly
-spread samples has sigma(turn) = sqrt(3)·sigma(offset) (TURN_RATIO; measured 1.7–2.0). The residuals
-are mapped to those edge offsets and turns (`edge_whitener`), the turns divided by the turn ratio,
-which makes them of one sigma, the offset sigma. For a rectangle, a corner coordinate then has the
-variance (1 + turn_ratio²)·sigma_offset²: sigma_px (per corner coordinate, as the other solvers use it)
-= sqrt(1 + turn_ratio²)·sigma_offset. turn_ratio=None: independent corner coordinates of sigma_px.
+(its endpoints moved oppositely along the normal); and on real cameras a tag's four edges also move
+in or out together (contrast, blur, gamma: the tag looks bigger or smaller). Measured on real
+photographs against saddle-point truth (docs/real-data.md): per-edge offsets 0.10-0.13 px, turns 0.6-1.1
+times that (TURN_RATIO = 1; a line fitted to evenly spread samples alone would give sqrt 3, and
+toptag's old renderer gave 1.7-2.0), and a per-tag common offset 0.6-1.25 times the per-edge one
+(TAG_RATIO = 1). The residuals are mapped to edge offsets and turns (`edge_whitener`), the turns divided
+by the turn ratio and the offsets decorrelated from their tag's common part, which makes them of one
+sigma, the per-edge offset sigma. The common part is what tells a tag's range from its size; weighing
+it as the noise it is keeps a lone tag's size from overruling the roof-height prior. For a rectangle
+a corner coordinate then has the variance (1 + tag_ratio² + turn_ratio²)·sigma_offset²: sigma_px (per
+corner coordinate, as the other solvers use it) = noise_scale · sigma_offset. turn_ratio=None:
+independent corner coordinates of sigma_px.
 
 Garbled tags. The detector now and then returns one or two corners of a tag pixels off (about one tag
 in a hundred in the study). Those the outlier test (robust.screen_outliers) does not drop are weighed
@@ -45,7 +51,8 @@ from scipy import stats
 from scipy.linalg import block_diag
 
 from toptag.geometry import rodrigues
-from toptag.solvers.common import Fit, estimate_sigma, rms, safe_inverse
+from toptag.solvers.common import SIGMA_FLOOR_PX as COMMON_FLOOR_PX
+from toptag.solvers.common import SIGMA_PRIOR_PX, Fit, estimate_sigma, rms, safe_inverse
 from toptag.solvers.hopt import initial_pose
 from toptag.solvers.lm import levenberg_marquardt
 from toptag.solvers.model import (
@@ -62,14 +69,12 @@ from toptag.solvers.model import (
     planar_theta,
 )
 
-TURN_RATIO = math.sqrt(3.0)  # sigma(turn) / sigma(offset) of a line fitted to evenly spread samples
-# Typical AprilTag 3 corner noise per coordinate on the study's images (0.04–0.09 px at 960×720,
-# 0.03–0.06 px at 3200×2400; edge offsets 0.02–0.03 px): the starting weight when sigma is unknown,
-# and pooled in when a fit leaves too few degrees of freedom to estimate it.
-DETECTOR_SIGMA_PX = 0.05
-# Per corner coordinate. The other solvers' floor (0.1 px, common.SIGMA_FLOOR_PX) is above what the
-# detector achieves; with it the height prior would be trusted too much.
-LEVEL_SIGMA_FLOOR_PX = 0.01
+TURN_RATIO = 1.0  # sigma(turn) / sigma(offset) of an edge, real photographs (0.6-1.1)
+TAG_RATIO = 1.0  # sigma of a tag's common edge offset / sigma(offset), real photographs (0.6-1.25)
+# Per corner coordinate: the real cameras' corner noise (the prior pooled into every estimate from the
+# residuals, and the starting weight) and its floor, as every solver uses them.
+DETECTOR_SIGMA_PX = SIGMA_PRIOR_PX
+LEVEL_SIGMA_FLOOR_PX = COMMON_FLOOR_PX
 
 
 @dataclass(frozen=True)
@@ -88,11 +93,10 @@ class DetectorBias:
 
 
 NO_BIAS = DetectorBias()
-# Measured on rendered frames (toptag's default image model; detected corners against the projected truth,
-# 96 tags at 960x720 and 3200x2400): edge offset 0.02 px in common and 0.03-0.05 px from tag to tag; with
-# these values the level fixes' NEES on 30 such frames is 5.1 (mean) / 1.8 (median), against 48 / 7.5
-# without them.
-DETECTOR_BIAS = DetectorBias(edge_common=0.03, edge_tag=0.04, image_shift=0.05)
+# What every tag of an image shares, which no residual shows: on real photographs the tags' mean edge
+# offset after the detector's correction (DetectorSettings.edge_shift_px) is -0.03 to +0.02 px; a tag's
+# own common offset is in the weighting (TAG_RATIO), not here.
+DETECTOR_BIAS = DetectorBias(edge_common=0.03, edge_tag=0.0, image_shift=0.05)
 MISFIT_FACTOR = 5.0  # a tag's misfit up to this many times the best tag's is as good as it (see below)
 MISFIT_POWER = 4.0  # beyond, its residuals count (MISFIT_FACTOR·r_min / r_k)^MISFIT_POWER as much
 MISFIT_DROP_WEIGHT = 0.1  # below (a misfit 9x the best tag's), the tag is left out and reported
@@ -107,7 +111,7 @@ def _chi2_quantile(alpha: float, k: int) -> float:
 
 def noise_scale(turn_ratio: float | None) -> float:
     """sigma_px (per corner coordinate) / sigma of the whitened residuals."""
-    return math.sqrt(1.0 + turn_ratio ** 2) if turn_ratio else 1.0
+    return math.sqrt(1.0 + TAG_RATIO ** 2 + turn_ratio ** 2) if turn_ratio else 1.0
 
 
 def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
@@ -129,6 +133,11 @@ def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
         B[:, 2 * a, 2 * b:2 * b + 2] = nrm[:, a]
         B[:, 2 * a + 1, 2 * a:2 * a + 2] = -nrm[:, a] / turn_ratio
         B[:, 2 * a + 1, 2 * b:2 * b + 2] = nrm[:, a] / turn_ratio
+    if TAG_RATIO:
+        # Offsets o with covariance s²(I + r² 11ᵀ): whitened by I − (1 − 1/sqrt(1 + 4r²))·11ᵀ/4.
+        k = 1.0 - 1.0 / math.sqrt(1.0 + 4.0 * TAG_RATIO ** 2)
+        off = B[:, 0::2, :]
+        B[:, 0::2, :] = off - k * off.mean(axis=1, keepdims=True)
     return B
 
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from toptag.solvers.common import Fit, safe_inverse
+from toptag.solvers.common import SIGMA_PRIOR_PX, Fit, safe_inverse
 from toptag.solvers.level import SubsetFits, noise_scale
 from toptag.solvers.model import (
     KNOWN,
@@ -45,11 +45,10 @@ from toptag.solvers.model import (
     evaluate,
 )
 
-# Per corner coordinate: the detector's corner noise, on the high side (the study measured 0.04–0.09 px
-# at 960×720 and 0.03–0.06 px at 3200×2400), pooled with a lone tag's 4–5 degrees of freedom. More
-# weight catches more garbled tags and falsely drops more good ones when the images are noisier (with
-# 4: 2.6 % of pairs with 0.3 px noise).
-SCREEN_PRIOR_PX = 0.1
+# Per corner coordinate: the real cameras' corner noise (common.SIGMA_PRIOR_PX), pooled with a lone
+# tag's 4–5 degrees of freedom. More weight catches more garbled tags and falsely drops more good ones
+# when the images are noisier.
+SCREEN_PRIOR_PX = SIGMA_PRIOR_PX
 PRIOR_DOF = 1.5
 
 
