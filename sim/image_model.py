@@ -12,9 +12,9 @@ figure; `ImageModel().describe()` prints it on one line:
   puts AprilTag's detected edges inside the black square, as on real cameras);
 - vignetting = 0.3: light falls off to 70 % at the image corners;
 - noise_sigma = 7 grey levels: additive Gaussian sensor noise, independent per pixel and frame.
-- codec = "h264", video_crf = 36: each frame as an RSU's H.264 stream at a limited bitrate delivers it
-  (an intra frame by x264 at constant rate factor 36, 4:2:0; "h265" too); codec "jpeg" uses
-  jpeg_quality instead (0 = off).
+- codec = "h264", video_qp = 36: each frame as an RSU's H.264 stream at a limited bitrate delivers it
+  (an intra frame by x264 at quantizer 36, 4:2:0: about 14 kB for a 960x720 frame, 1.1 Mbit/s at 10 fps;
+  "h265" too); codec "jpeg" uses jpeg_quality instead (0 = off).
 - readout_s = 0 (global shutter), shadow = 0, glare = 0: rolling shutter, a shadow edge across the
   roof and a specular highlight on it, off by default (the calibration photographs have none; each is
   a parameter for studies: docs/image-model.md measures their effect).
@@ -62,8 +62,9 @@ class ImageModel(BaseModel):
     readout_s: float = Field(default=0.0, ge=0.0,
                              description="rolling shutter: time to read the frame top to bottom, s; 0 = global")
     codec: Literal["jpeg", "h264", "h265"] = Field(
-        default="h264", description="stream codec: jpeg (jpeg_quality) or an intra-coded H.264/H.265 frame (video_crf)")
-    video_crf: int = Field(default=36, ge=0, le=51, description="x264/x265 constant rate factor; default 36")
+        default="h264", description="stream codec: jpeg (jpeg_quality) or an intra-coded H.264/H.265 frame (video_qp)")
+    video_qp: int = Field(default=36, ge=0, le=51,
+                          description="x264/x265 quantizer of each (intra) frame: the stream's bitrate limit; default 36")
     shadow: float = Field(default=0.0, ge=0.0, le=1.0,
                           description="a shadow edge across each roof, darkening by this fraction; default 0")
     glare: float = Field(default=0.0, ge=0.0,
@@ -85,7 +86,7 @@ class ImageModel(BaseModel):
     def describe(self) -> str:
         """One line stating the model, to print beside a figure."""
         if self.codec != "jpeg":
-            codec = f"{self.codec.upper()} intra CRF {self.video_crf}"
+            codec = f"{self.codec.upper()} intra QP {self.video_qp}"
         else:
             codec = f"JPEG q{self.jpeg_quality}" if self.jpeg_quality else "no JPEG"
         extra = "".join([f", defocus {self.defocus_px:g} px" if self.defocus_px else "",

@@ -574,7 +574,7 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
         cv2.randn(rast.noise, 0.0, float(model.noise_sigma))
         cv2.add(out, rast.noise, dst=out, dtype=cv2.CV_8U)
     if model.codec != "jpeg":
-        out = video_roundtrip(out, model.codec, model.video_crf)
+        out = video_roundtrip(out, model.codec, model.video_qp)
     elif model.jpeg_quality > 0:
         out = cv2.imdecode(np.frombuffer(encode_jpeg(out, model.jpeg_quality), np.uint8), cv2.IMREAD_GRAYSCALE)
     return out
@@ -583,13 +583,14 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
 _CODECS = threading.local()
 
 
-def video_roundtrip(image: np.ndarray, codec: str, crf: int) -> np.ndarray:
-    """The frame as an RSU's video stream delivers it: encoded by x264 / x265 at the constant rate factor
-    crf as an intra frame (keyint 1, 4:2:0, as cameras stream), decoded again (PyAV's FFmpeg). One
-    encoder and decoder per thread and format, reused frame after frame."""
+def video_roundtrip(image: np.ndarray, codec: str, qp: int) -> np.ndarray:
+    """The frame as an RSU's video stream delivers it: encoded by x264 / x265 as an intra frame (keyint
+    1, 4:2:0, as cameras stream) at the constant quantizer qp, decoded again (PyAV's FFmpeg). One encoder
+    and decoder per thread and format, reused frame after frame (a constant quantizer, unlike a rate
+    factor, does not depend on the frames before)."""
     h, w = image.shape
     W, H = w - w % 2, h - h % 2
-    key = (codec, int(crf), W, H)
+    key = (codec, int(qp), W, H)
     pairs = _CODECS.__dict__.setdefault("pairs", {})
     if key not in pairs:
         import av
@@ -597,7 +598,7 @@ def video_roundtrip(image: np.ndarray, codec: str, crf: int) -> np.ndarray:
         enc = av.CodecContext.create({"h264": "libx264", "h265": "libx265"}[codec], "w")
         enc.width, enc.height, enc.pix_fmt = W, H, "yuv420p"
         params = "keyint=1" if codec == "h264" else "keyint=1:log-level=error"
-        enc.options = {"crf": str(int(crf)), "preset": "veryfast", "tune": "zerolatency",
+        enc.options = {"qp": str(int(qp)), "preset": "veryfast", "tune": "zerolatency",
                        f"{'x264' if codec == 'h264' else 'x265'}-params": params}
         pairs[key] = [enc, av.CodecContext.create({"h264": "h264", "h265": "hevc"}[codec], "r"), 0]
     enc, dec, n = pairs[key]

@@ -136,7 +136,10 @@ class Scenario(BaseModel):
     truth_hz: float = Field(default=20.0, gt=0, le=1000)
     gnss_hz: float = Field(default=1.0, gt=0, le=100)
     gnss_sigma_m: float = Field(default=2.0, gt=0)
-    image_model: ImageModel = Field(default_factory=ImageModel)
+    # The live simulator's frames travel as JPEG (protocol Frame); its cameras' stream codec is that JPEG
+    # (q90), not the calibrated model's H.264 stage, which would cost every RSU frame 16 ms more of a
+    # small machine's real time. Everything else is the calibrated model; a scenario may say otherwise.
+    image_model: ImageModel = Field(default_factory=lambda: ImageModel(codec="jpeg"))
     imu_model: ImuNoise = Field(default_factory=ImuNoise)
     loop: bool = False
     loop_gap_s: float = Field(default=3.0, gt=0, description="pause between the last leg end and the repeat")

@@ -13,7 +13,8 @@ from sim.patterns import grid_size, tag_cells
 from sim.raster import raster_for
 from sim.render import Occluder, PlacedVehicle, render
 from sim.scene import bundled_vehicle, rsu_camera
-from toptag.detection import TagDetector, detect_vehicle_tags
+from sim.raster import optics
+from toptag.detection import DetectorSettings, TagDetector, detect_vehicle_tags
 
 pytestmark = pytest.mark.unit
 
@@ -24,6 +25,15 @@ BARREL = [-0.25, 0.08, 0.0, 0.0, 0.0]
 @pytest.fixture(scope="module")
 def detector():
     det = TagDetector()
+    yield det
+    det.close()
+
+
+@pytest.fixture(scope="module")
+def geometry_detector():
+    """Without the detector's edge correction (which undoes real cameras' inward edge bias): for checks
+    of the rendered geometry on images without blur in linear light."""
+    det = TagDetector(settings=DetectorSettings(edge_shift_px=0.0))
     yield det
     det.close()
 
@@ -120,7 +130,7 @@ def test_frame_region_update_is_seamless():
     cam = rsu_camera("sw")
     rast = raster_for(cam)
     bus = bundled_vehicle("bus_double")
-    model = ImageModel(noise_sigma=0.0, jpeg_quality=0, exposure=0.0)
+    model = ImageModel(noise_sigma=0.0, codec="jpeg", jpeg_quality=0, exposure=0.0)
     pv = place(cam, bus, 9.0, 0.1, yaw=1.0)
     img = render(cam, [pv], model=model)
     box, _ = R._as_box(pv)
@@ -129,7 +139,7 @@ def test_frame_region_update_is_seamless():
     h, w = layer.alpha.shape
     sl = (slice(layer.y0, layer.y0 + h), slice(layer.x0, layer.x0 + w))
     F[sl] = F[sl] * (1 - layer.alpha) + layer.premult
-    ref = cv2.convertScaleAbs(cv2.GaussianBlur(F, (0, 0), model.blur_sigma), alpha=model.gain)
+    ref = cv2.convertScaleAbs(optics(F, model) * rast.vignette(model), alpha=model.gain)
     assert np.abs(img.astype(int) - ref).max() <= 1
 
 
@@ -138,26 +148,34 @@ LAYOUTS = ["bus_double", "bus_single", "bus_triple", "bus_long"]
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
-def test_detected_corners_match_projection(detector, layout):
+def test_detected_corners_match_projection(detector, geometry_detector, layout):
+    """Ideal images (geometry only) with the uncorrected detector, and the default (real-camera) model
+    with the RSU's detector."""
     cam = rsu_camera("sw")
     bus = bundled_vehicle(layout)
     rng = np.random.default_rng(1)
-    for model, limit in ((ImageModel.ideal(), 0.2), (ImageModel(), 0.5)):
-        errs = []
+    for model, limit, det, share in ((ImageModel.ideal(), 0.2, geometry_detector, 1.0),
+                                     (ImageModel(), 0.5, detector, 0.75)):
+        errs, found_n = [], 0
         for yaw in np.linspace(-np.pi, np.pi, 4, endpoint=False) + 0.3:
             pv = place(cam, bus, float(rng.uniform(8.0, 10.0)), float(rng.uniform(-0.2, 0.2)), yaw=float(yaw),
                        z=bus.height + float(rng.uniform(-0.1, 0.1)))
-            found = corner_errors(detector, render(cam, [pv], model=model, rng=rng), cam, pv)
-            assert set(found) == set(bus.tag_ids), (model.describe(), yaw)
+            found = corner_errors(det, render(cam, [pv], model=model, rng=rng), cam, pv)
+            assert set(found) <= set(bus.tag_ids)
+            found_n += len(found)
             # Order: each detected corner is nearest to the same-index projected corner.
-            assert all(np.abs(e).max() < 1.0 for e in found.values())
+            assert all(np.abs(e).max() < 1.5 for e in found.values())
             errs += found.values()
-        print(f"{layout} {'ideal' if model.noise_sigma == 0 else 'default'}: corner RMS {rms(errs):.3f} px")
+        print(f"{layout} {'ideal' if model.noise_sigma == 0 else 'default'}: corner RMS {rms(errs):.3f} px, "
+              f"{found_n} of {4 * len(bus.tag_ids)} tags")
+        # The calibrated model's H.264 at low contrast loses a tag now and then, as real cameras do
+        # (EuRoC: 32 of 36 tags in view found).
+        assert found_n >= share * 4 * len(bus.tag_ids), (model.describe(), found_n)
         assert rms(errs) < limit
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
-def test_lens_distortion_rendered_exactly(detector, layout):
+def test_lens_distortion_rendered_exactly(geometry_detector, layout):
     """Barrel distortion: undistorting the rendered image with the camera's model and detecting there
     gives the ideal pinhole corners (the renderer honours `dist`); detecting on the raw distorted image
     is limited by the detector's straight-edge fit, reported and bounded loosely."""
@@ -169,9 +187,9 @@ def test_lens_distortion_rendered_exactly(detector, layout):
     for yaw in np.linspace(-np.pi, np.pi, 3, endpoint=False) + 0.2:
         pv = place(cam, bus, float(rng.uniform(8.0, 10.0)), float(rng.uniform(-0.3, 0.3)), yaw=float(yaw))
         img = render(cam, [pv], model=ImageModel.ideal(), rng=rng)
-        raw += corner_errors(detector, img, cam, pv).values()
+        raw += corner_errors(geometry_detector, img, cam, pv).values()
         flat = cv2.remap(img, mx, my, cv2.INTER_CUBIC)
-        obs = detect_vehicle_tags(detector, flat, cam, [bus])[bus.id]  # corners in ideal pixels
+        obs = detect_vehicle_tags(geometry_detector, flat, cam, [bus])[bus.id]  # corners in ideal pixels
         assert {o.tag_id for o in obs} == set(bus.tag_ids)
         for o in obs:
             und.append(o.raw_corners - cam.project(pv.tag_corners_world(o.tag_id), distort=False))
@@ -255,17 +273,20 @@ def test_noise_and_jpeg_change_pixels_but_tags_are_found(detector):
     cam = rsu_camera("sw")
     bus = bundled_vehicle("bus_triple")
     pv = place(cam, bus, 12.0, yaw=0.4)
-    clean = render(cam, [pv], model=ImageModel(noise_sigma=0.0, jpeg_quality=0))
-    for model in (ImageModel(noise_sigma=6.0, jpeg_quality=0), ImageModel(noise_sigma=0.0, jpeg_quality=40),
-                  ImageModel(noise_sigma=4.0, jpeg_quality=60, tag_black=60, tag_white=170, gain=0.8)):
+    clean = render(cam, [pv], model=ImageModel(noise_sigma=0.0, codec="jpeg", jpeg_quality=0))
+    for model in (ImageModel(noise_sigma=6.0, codec="jpeg", jpeg_quality=0),
+                  ImageModel(noise_sigma=0.0, codec="jpeg", jpeg_quality=40),
+                  ImageModel(noise_sigma=4.0, codec="jpeg", jpeg_quality=60, tag_black=60, tag_white=170, gain=0.8),
+                  ImageModel(noise_sigma=0.0, codec="h264", video_qp=42),
+                  ImageModel(noise_sigma=0.0, codec="h265", video_qp=36)):
         img = render(cam, [pv], model=model, rng=np.random.default_rng(4))
         assert img.dtype == np.uint8 and img.shape == (cam.height, cam.width)
         assert np.abs(img.astype(int) - clean).mean() > 0.5
         found = corner_errors(detector, img, cam, pv)
         assert set(found) == set(bus.tag_ids), model.describe()
         assert rms(found.values()) < 0.6
-    noise = render(cam, [], model=ImageModel(noise_sigma=3.0, jpeg_quality=0), rng=np.random.default_rng(5))
-    flat = render(cam, [], model=ImageModel(noise_sigma=0.0, jpeg_quality=0))
+    noise = render(cam, [], model=ImageModel(noise_sigma=3.0, codec="jpeg", jpeg_quality=0), rng=np.random.default_rng(5))
+    flat = render(cam, [], model=ImageModel(noise_sigma=0.0, codec="jpeg", jpeg_quality=0))
     assert abs(float((noise.astype(float) - flat).std()) - 3.0) < 0.2
     same = [render(cam, [pv], rng=np.random.default_rng(9)) for _ in range(2)]
     np.testing.assert_array_equal(same[0], same[1])
@@ -282,4 +303,56 @@ def test_calibration_error_perturbs_only_extrinsics():
     assert 0 < np.linalg.norm(bad.center - cam.center) < 0.3
     same = perturb_camera(cam, ImageModel.ideal(), np.random.default_rng(0))
     np.testing.assert_allclose(same.R, cam.R)
-    assert "blur 0.6 px" in ImageModel().describe()
+    assert "blur 0.5 px" in ImageModel().describe() and "H264 intra QP 36" in ImageModel().describe()
+
+
+# ---- real-camera degradations (issue 11) ---------------------------------------------------------
+def test_gamma_puts_detected_edges_inside_the_black_square(geometry_detector):
+    """Blur in linear light, stored gamma-encoded: AprilTag's edges land inside the black square, as on
+    real photographs (0.19-0.25 px at the corners, docs/image-model.md); in linear storage they do not."""
+    cam = rsu_camera("sw")
+    bus = bundled_vehicle("bus_double")
+    inward = {}
+    for gamma in (1.0, 2.2):
+        model = ImageModel.ideal(blur_sigma=0.5, defocus_px=0.7, gamma=gamma)
+        vals = []
+        for yaw in (0.3, 1.5, 2.8):
+            pv = place(cam, bus, 9.0, 0.1, yaw=yaw)
+            for tid, e in corner_errors(geometry_detector, render(cam, [pv], model=model), cam, pv).items():
+                truth = cam.project(pv.tag_corners_world(tid))
+                d = truth - truth.mean(axis=0)
+                vals += list(-np.sum(e * d / np.linalg.norm(d, axis=1, keepdims=True), axis=1))
+        inward[gamma] = float(np.mean(vals))
+    assert abs(inward[1.0]) < 0.08 and 0.12 < inward[2.2] < 0.4, inward
+
+
+def test_each_degradation_changes_what_it_should():
+    cam = rsu_camera("sw")
+    bus = bundled_vehicle("bus_double")
+    base = ImageModel.ideal()
+    still = place(cam, bus, 10.0, 0.1, yaw=0.5)
+    moving = place(cam, bus, 10.0, 0.1, yaw=0.5, speed=8.0)
+    ref = render(cam, [still], model=base).astype(int)
+    # Vignetting darkens the corners of the frame, not its centre.
+    v = render(cam, [still], model=base.model_copy(update={"vignetting": 0.4})).astype(int)
+    assert (ref - v)[:40, :40].mean() > 15 and abs((ref - v)[340:380, 460:500].mean()) < 1
+    # Defocus softens the tags' edges: less high-frequency energy there.
+    pts = np.vstack([cam.project(still.tag_corners_world(t)) for t in bus.tag_ids])
+    (x0, y0), (x1, y1) = np.floor(pts.min(axis=0)).astype(int) - 5, np.ceil(pts.max(axis=0)).astype(int) + 5
+    d = render(cam, [still], model=base.model_copy(update={"defocus_px": 1.5})).astype(float)
+    sharp = np.abs(np.diff(ref[y0:y1, x0:x1].astype(float), axis=1)).mean()
+    assert np.abs(np.diff(d[y0:y1, x0:x1], axis=1)).mean() < 0.8 * sharp
+    # Rolling shutter: a still bus is untouched, a moving one is sheared.
+    rs = base.model_copy(update={"readout_s": 0.03})
+    np.testing.assert_array_equal(render(cam, [still], model=rs), ref)
+    assert np.abs(render(cam, [moving], model=rs).astype(int) - render(cam, [moving], model=base)).max() > 50
+    # Shadow and glare act on the roof only (the rest of the frame is the same image).
+    roof = np.zeros(ref.shape, bool)
+    for tid in bus.tag_ids:
+        cv2.fillConvexPoly(roof.view(np.uint8), np.rint(cam.project(still.tag_corners_world(tid))).astype(np.int32), 1)
+    for knob in ({"shadow": 0.6}, {"glare": 80.0}):
+        img = render(cam, [still], model=base.model_copy(update=knob), rng=np.random.default_rng(1)).astype(int)
+        diff = np.abs(img - ref)
+        assert diff[roof].mean() > 3, knob
+        assert np.abs(img - ref)[:150].max() == 0, knob  # sky and far road, away from the bus
+

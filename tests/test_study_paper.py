@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from sim.image_model import ImageModel
 from sim.scene import bundled_vehicle, rsu_camera
 from sim.studies import paper
 from sim.studies.paper_models import (
@@ -44,7 +45,7 @@ def small_run(tmp_path_factory):
 def test_results_json_has_the_issue_shape(small_run):
     _, r, _, _ = small_run
     assert set(r["cases"]) == {"low_flat", "low_bounce"}
-    assert r["image_model"]["describe"] and r["image_model"]["noise_sigma"] == 3.0  # the default model
+    assert r["image_model"]["describe"] and r["image_model"]["noise_sigma"] == ImageModel().noise_sigma  # the default
     for case in ("low_flat", "low_bounce"):
         sec = r["cases"][case]
         assert {"bas", "hopt", "sopt", "sopt_principled", "sopt_level", "sopt_2cam", "sopt_level_2cam"} <= set(sec)
