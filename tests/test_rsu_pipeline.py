@@ -171,7 +171,8 @@ def test_another_rsus_fix_replaces_acquisition(bus_pass):
     """A hint (another RSU's fix) makes the search a crop where the bus is, and no search at all where
     the bus cannot be seen."""
     camera, bus, frames = bus_pass
-    t_ns, img, truth, visible = next(f for f in frames if f[3])
+    shown = [f for f in frames if f[3]]
+    t_ns, img, truth, visible = shown[len(shown) // 2]  # well inside the view, not entering it
     p = RsuPipeline(camera)
     p.add_vehicle(bus)
     p.hint(bus.id, t_ns - 150_000_000, truth[0] + 0.05, truth[1] - 0.05, truth[2], truth[3])
@@ -192,7 +193,8 @@ def test_coarse_position_far_away_waits_instead_of_searching(bus_pass):
     """The bus's own GNSS position (in its Approach) 40 m away: it cannot be in view, nothing is searched;
     a position near the bus lets acquisition run and find it."""
     camera, bus, frames = bus_pass
-    t_ns, img, truth, _ = next(f for f in frames if f[3])
+    shown = [f for f in frames if f[3]]
+    t_ns, img, truth, _ = shown[len(shown) // 2]  # well inside the view, not entering it
     p = RsuPipeline(camera)
     p.add_vehicle(bus)
     p.coarse_position(bus.id, t_ns, -9.0 - 30.0, -9.0 - 25.0, 2.0)  # behind the south-west RSU
