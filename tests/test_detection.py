@@ -12,6 +12,8 @@ from toptag.detection import DetectorSettings, TagDetector, detect_vehicle_tags
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.vehicle import Vehicle
 
+pytestmark = pytest.mark.unit
+
 
 def bus(family: str, vid: str, ids=(3, 7)) -> Vehicle:
     return Vehicle.from_dict({"id": vid, "height": 3.0, "family": family, "length": 6.0, "width": 2.0,

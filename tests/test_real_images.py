@@ -22,6 +22,7 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "data" / "real"
 SHARED = REPO.parent / "shared" / "real"
 
+pytestmark = pytest.mark.integration
 needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason=f"{SHARED} (../shared beside the clone) is missing")
 
 

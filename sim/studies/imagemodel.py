@@ -23,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.studies import require_plotting
+from toptag.errors import SetupError, report
+
 from sim.image_model import ImageModel
 from sim.render import render
 from sim.sampling import sector_pose
@@ -115,6 +118,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="also render the degradations that are off by default (rolling shutter on a bus at "
                         "0-30 km/h, roof shadow, glare, H.265) and report their corner errors and detection")
     args = p.parse_args(argv)
+    if getattr(args, "out", None) is not None:
+        try:
+            require_plotting()
+        except SetupError as e:
+            return report("eval imagemodel", e)
     shift = DetectorSettings().edge_shift_px
     real = real_errors()
     if not real:

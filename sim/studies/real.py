@@ -31,6 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.studies import require_plotting
+from toptag.errors import SetupError, report
+
 from toptag.dataset import (
     Dataset,
     ImageEntry,
@@ -355,6 +358,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="bit errors admitted per tag (default: the RSU's gate for the family)")
     p.add_argument("--make-truth", action="store_true", help="(re)make the corner and pose truth, then stop")
     args = p.parse_args(argv)
+    if getattr(args, "out", None) is not None:
+        try:
+            require_plotting()
+        except SetupError as e:
+            return report("eval real", e)
     try:
         ds = Dataset.load(args.data)
         if args.make_truth:
