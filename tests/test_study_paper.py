@@ -58,7 +58,8 @@ def test_results_json_has_the_issue_shape(small_run):
         assert list(crlb) == [str(d) for d in range(5, 21)]
         for row in crlb.values():
             assert 0.0 < row["sigma_px"] < 0.5 and row["edge_offset_px"] > 0.0 and row["edge_turn_px"] > 0.0
-            assert 0.0 < row["pos_rms_m"] < 0.05 and row["pos_rms_2cam_m"] <= row["pos_rms_m"] * 1.0001
+            # real-camera corner noise (calibrated image model): the bound is 2.7 cm at 20 m (low_bounce)
+            assert 0.0 < row["pos_rms_m"] < 0.08 and row["pos_rms_2cam_m"] <= row["pos_rms_m"] * 1.0001
             assert row["pos_rms_calib_m"] > row["pos_rms_m"]  # calibration error only adds
     assert set(r["calibration"]) == {"low_flat", "low_bounce"}
     assert r["samples_per_case"] == SAMPLES and "eval paper" in r["command"]
