@@ -210,8 +210,10 @@ def test_a_replayed_drive_through_fresh_rsus_and_bus_is_as_accurate(demo, replay
     # Same accuracy: the fresh processes' fixes and fused poses against the recorded (shifted) truth.
     for key in ("fix_pos_rms_m", "fused_pos_rms_m"):
         assert original[key] is not None and again[key] is not None, (original, again)
-        assert again[key] < max(2 * original[key], original[key] + 0.02), (key, original, again)
-    assert again["fix_pos_rms_m"] < 0.10 and again["fused_pos_rms_m"] < 0.05, again
+        # Real-camera corner noise (issue 11's calibrated image model) makes single fixes ~5 cm: a replay
+        # that gets fewer fixes on a busy machine fuses fewer of them, hence the 4 cm allowance.
+        assert again[key] < max(2 * original[key], original[key] + 0.04), (key, original, again)
+    assert again["fix_pos_rms_m"] < 0.10 and again["fused_pos_rms_m"] < 0.08, again  # fewer fixes: see above
 
 
 def test_offline_fusion_of_the_recorded_demo_is_repeatable(demo, tmp_path):
