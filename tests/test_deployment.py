@@ -440,6 +440,7 @@ def _analyse(records: list, cut_rsu: str, t0: float, t_cut: float, t_restore: fl
     fused = []
     status = []  # (t, frames_received) of the cut RSU
     stale_after = fresh_after = 0
+    cut_rsu_through_cut = 0  # fixes of the cut RSU captured and delivered while its cable was cut
     first_fresh_fix = None
     for rec in records:
         t, kind, f = rec[0] * 1e-9, rec[1], rec[2:]
@@ -455,6 +456,8 @@ def _analyse(records: list, cut_rsu: str, t0: float, t_cut: float, t_restore: fl
                 during_arrivals[bus].append(t)
                 a, b = span.get(bus, (t, t))
                 span[bus] = (min(a, t), max(b, t))
+            if rsu == cut_rsu and t_cut <= capture and t < t_restore:
+                cut_rsu_through_cut += 1
             if rsu == cut_rsu and t >= t_restore:
                 if capture < t_restore:
                     stale_after += 1
@@ -505,6 +508,7 @@ def _analyse(records: list, cut_rsu: str, t0: float, t_cut: float, t_restore: fl
             "during_cut_in_view": in_view,
             "cut_rsu_received_frames_before": worked_before,
             "resume_s": {"status": status_back, "frames": frames_back, "fresh_fix": first_fresh_fix},
+            "cut_rsu_fixes_through_cut": cut_rsu_through_cut,
             "cut_rsu_fixes_after": {"stale": stale_after, "fresh": fresh_after}}
 
 
@@ -601,8 +605,11 @@ def test_separate_hosts_run_the_compose_topology_and_survive_a_cut_rsu_link(tmp_
     (tmp_path / "figures.json").write_text(json.dumps(figures, indent=1))
 
     fixes = figures["fixes_by_capture"]
-    # the cut RSU worked before the cut, and nothing it captured during the cut ever arrived
-    assert figures["cut_rsu_received_frames_before"] and fixes["during"].get(cut_rsu, 0) == 0, figures
+    # the cut RSU worked before the cut, and nothing it captured during the cut arrived while the cable was
+    # cut. Frames the router had queued for it when the cable went down may still reach it once the cable is
+    # back (TCP delivers them; a cut shorter than the Zenoh lease keeps the session): the fixes from those come
+    # late, stamped with their capture time, and count as "stale" after the restore.
+    assert figures["cut_rsu_received_frames_before"] and figures["cut_rsu_fixes_through_cut"] == 0, figures
     # the other RSUs carried on; bus-17, which the cut RSU was tracking, was "ok" at times, and every bus
     # in view kept an honest estimate: never "lost", within 8 cm RMS of the truth when "ok", and its
     # reported uncertainty (3 sigma) holding its error when not. How often it is "ok" depends on how fast
