@@ -22,6 +22,7 @@ from protocol.messages import (
     Leave,
     Message,
     PoseFix,
+    RsuDiagnosis,
     RsuStatus,
     TagDetections,
     check_id,
@@ -29,6 +30,6 @@ from protocol.messages import (
 
 __all__ = [
     "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "CoarsePosition", "Frame", "FusedPose",
-    "FusionHealth", "GnssFix", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuStatus",
-    "TagDetections", "check_id", "codec", "decode", "decode_any", "encode", "keys",
+    "FusionHealth", "GnssFix", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuDiagnosis",
+    "RsuStatus", "TagDetections", "check_id", "codec", "decode", "decode_any", "encode", "keys",
 ]

@@ -1,5 +1,6 @@
 """Between the core's vocabulary and the wire: the only place where a `toptag.fix.Fix` becomes a
-`PoseFix` message (and back) and a `toptag.fusion.state.FusedState` becomes a `FusedPose` message.
+`PoseFix` message (and back), a `toptag.fusion.state.FusedState` becomes a `FusedPose` message, a
+`toptag.fusion.trust.RsuAssessment` an `RsuDiagnosis` and a `toptag.hostclock.HostClock` a `ClockInfo`.
 
 Field names differ on purpose: the wire names say what the receiver needs (``capture_time_ns``,
 ``rsu_id``, ``frame_seq``), the core names are the filter's (``t_ns``, ``source``, ``seq``)."""
@@ -7,16 +8,25 @@ from __future__ import annotations
 
 import math
 
-from protocol.messages import FusedPose, FusionHealth, PoseFix
+from protocol.messages import ClockInfo, FusedPose, FusionHealth, PoseFix, RsuDiagnosis
 from toptag.fix import Fix
+from toptag.fusion.outcomes import FixOutcome
 from toptag.fusion.state import FusedState, Health
+from toptag.fusion.trust import RsuAssessment
+from toptag.hostclock import HostClock
 from toptag.units import ns_from_s
 
 
+def clock_to_message(clock: HostClock) -> ClockInfo:
+    """The wire ClockInfo of a host's clock (toptag.hostclock)."""
+    return ClockInfo(source=clock.source, sync_uncertainty_ns=clock.bound_ns)
+
+
 def fix_to_message(fix: Fix, bus_id: str, intersection_id: str, publish_time_ns: int,
-                   processing_ns: int | None = None) -> PoseFix:
-    """The wire PoseFix of an RSU's fix of ``bus_id``. The fix must say how it was made (method, tags,
-    rms_px, z, seq), as an RSU's fix from `Fix.from_solution` does; raises ValueError otherwise."""
+                   processing_ns: int | None = None, clock: ClockInfo | None = None) -> PoseFix:
+    """The wire PoseFix of an RSU's fix of ``bus_id``; ``clock``: the clock that stamped its capture time.
+    The fix must say how it was made (method, tags, rms_px, z, seq), as an RSU's fix from
+    `Fix.from_solution` does; raises ValueError otherwise."""
     missing = [name for name, v in (("method", fix.method), ("tags", fix.tags), ("rms_px", fix.rms_px),
                                     ("z", fix.z), ("seq", fix.seq)) if v is None or v == ()]
     if missing:
@@ -25,14 +35,16 @@ def fix_to_message(fix: Fix, bus_id: str, intersection_id: str, publish_time_ns:
                    capture_time_ns=fix.t_ns, publish_time_ns=publish_time_ns, x=fix.x, y=fix.y, z=fix.z,
                    yaw=fix.yaw, covariance=fix.cov.tolist(), method=fix.method, tags_used=list(fix.tags),
                    reprojection_rms_px=fix.rms_px, frame_seq=fix.seq, processing_ns=processing_ns,
-                   ambiguous=fix.ambiguous)
+                   ambiguous=fix.ambiguous, clock=clock)
 
 
 def fix_from_message(m: PoseFix, arrival_ns: int | None = None) -> Fix:
-    """The core fix of a received PoseFix; ``arrival_ns`` is when it arrived (for the filter's health)."""
+    """The core fix of a received PoseFix; ``arrival_ns`` is when it arrived (for the filter's health).
+    Its clock bound is the message's (None, an unknown clock, when the message says none)."""
     return Fix(t_ns=m.capture_time_ns, x=m.x, y=m.y, yaw=m.yaw, cov=m.covariance_matrix(), source=m.rsu_id,
                seq=m.frame_seq, arrival_ns=arrival_ns, z=m.z, method=m.method, tags=tuple(m.tags_used),
-               rms_px=m.reprojection_rms_px, ambiguous=m.ambiguous)
+               rms_px=m.reprojection_rms_px, ambiguous=m.ambiguous,
+               clock_bound_ns=None if m.clock is None else m.clock.sync_uncertainty_ns)
 
 
 def _ns_or_none(seconds: float) -> int | None:
@@ -42,10 +54,29 @@ def _ns_or_none(seconds: float) -> int | None:
 def health_to_message(h: Health) -> FusionHealth:
     return FusionHealth(status=h.status, accepted_fixes=h.accepted, rejected_fixes=h.rejected,
                         since_last_fix_ns=_ns_or_none(h.since_last_fix_s),
-                        last_fix_delay_ns=_ns_or_none(h.last_fix_delay_s), last_fix_rsu=h.last_fix_source)
+                        last_fix_delay_ns=_ns_or_none(h.last_fix_delay_s), last_fix_rsu=h.last_fix_source,
+                        too_old_fixes=h.too_old, future_fixes=h.future, flagged_rsu_fixes=h.from_flagged_rsu,
+                        unknown_clock_fixes=h.unknown_clock, other_fixes=h.other, flagged_rsus=list(h.flagged_rsus))
 
 
 def fused_to_message(state: FusedState, bus_id: str) -> FusedPose:
     """The wire FusedPose of a bus's fused state (the wire carries the pose part and its health)."""
     return FusedPose(bus_id=bus_id, t_ns=state.t_ns, x=state.x, y=state.y, yaw=state.yaw, speed=state.speed,
                      yaw_rate=state.yaw_rate, covariance=state.cov.tolist(), health=health_to_message(state.health))
+
+
+def assessment_to_message(a: RsuAssessment, bus_id: str, intersection_id: str, reference_time_ns: int) -> RsuDiagnosis:
+    """The wire RsuDiagnosis of a bus filter's assessment of one RSU."""
+    fixes = a.fixes
+    accepted = sum(fixes.get(o.value, 0) for o in FixOutcome if o.applied)
+    gated = fixes.get(FixOutcome.REJECTED_GATE.value, 0)
+    refused = fixes.get(FixOutcome.REFUSED_FLAGGED.value, 0)
+    return RsuDiagnosis(
+        bus_id=bus_id, rsu_id=a.rsu, intersection_id=intersection_id, reference_time_ns=reference_time_ns,
+        time_offset_ns=None if a.offset_s is None else ns_from_s(a.offset_s),
+        time_offset_sigma_ns=None if a.offset_sigma_s is None else ns_from_s(a.offset_sigma_s),
+        clock_known=a.clock_known, drift_flagged=a.flagged, flagged_since_ns=a.flagged_since_ns,
+        disagreement_m=a.disagreement_m, disagreement_yaw_rad=a.disagreement[2],
+        disagreement_statistic=max(0.0, a.statistic), fixes_accepted=accepted, fixes_gated=gated,
+        fixes_refused=refused, fixes_other=sum(fixes.values()) - accepted - gated - refused, policy=a.policy,
+        advice=a.advice)

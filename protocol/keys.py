@@ -11,6 +11,7 @@ an id to build a subscription / query pattern; publishing helpers refuse pattern
 | frame(rsu)                           | toptag/v1/frame/<rsu>                              | Frame          |
 | rsu_status(rsu)                      | toptag/v1/status/rsu/<rsu>                         | RsuStatus      |
 | detections(rsu)                      | toptag/v1/detections/<rsu>                         | TagDetections  |
+| rsu_diagnosis(intersection, rsu, bus)| toptag/v1/diag/<intersection>/<rsu>/<bus>          | RsuDiagnosis   |
 | imu(bus)                             | toptag/v1/imu/<bus>                                | Imu            |
 | ground_truth(bus)                    | toptag/v1/truth/<bus>                              | GroundTruth    |
 | gnss(bus)                            | toptag/v1/gnss/<bus>                               | GnssFix        |
@@ -37,6 +38,7 @@ LAYOUT: dict[str, tuple[str, tuple[str, ...]]] = {
     "frame": ("frame", ("rsu",)),
     "rsu_status": ("status/rsu", ("rsu",)),
     "tag_detections": ("detections", ("rsu",)),
+    "rsu_diagnosis": ("diag", ("intersection", "rsu", "bus")),
     "imu": ("imu", ("bus",)),
     "ground_truth": ("truth", ("bus",)),
     "gnss": ("gnss", ("bus",)),
@@ -91,6 +93,11 @@ def detections(rsu: str) -> str:
     return _build("tag_detections", rsu)
 
 
+def rsu_diagnosis(intersection: str, rsu: str, bus: str) -> str:
+    """A bus's assessment of an RSU (time offset, drift flag); the RSU subscribes to its own."""
+    return _build("rsu_diagnosis", intersection, rsu, bus)
+
+
 def imu(bus: str) -> str:
     return _build("imu", bus)
 
@@ -133,6 +140,8 @@ def key_of(msg) -> str:
         return _build(t, msg.intersection_id, msg.bus_id)
     if t == "pose_fix":
         return pose_fix(msg.intersection_id, msg.bus_id, msg.rsu_id)
+    if t == "rsu_diagnosis":
+        return rsu_diagnosis(msg.intersection_id, msg.rsu_id, msg.bus_id)
     if t in ("frame", "rsu_status", "tag_detections"):
         return _build(t, msg.rsu_id)
     if t in ("imu", "ground_truth", "gnss", "fused_pose"):

@@ -123,7 +123,9 @@ ClockSource = Literal["system", "ntp", "ptp", "gnss", "sim"]
 
 
 class ClockInfo(BaseModel):
-    """How the sender's clock is disciplined, so the receiver can judge whether timestamps compare."""
+    """How the sender's clock is disciplined, so the receiver can judge whether timestamps compare.
+    Filled from the host by toptag.hostclock (chrony or ptp4l where they run; otherwise "system" with
+    no bound); "sim" is the simulator's own clock. A clock without a bound is an unknown clock."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -227,6 +229,8 @@ class PoseFix(Message):
                                                                         "this frame (part of the latency)")
     ambiguous: bool = Field(default=False, description="one tag whose mirrored pose fits as well: the covariance "
                                                        "covers both poses (added in v1, default false)")
+    clock: ClockInfo | None = Field(default=None, description="the clock that stamped capture_time_ns "
+                                                              "(None: not said, an unknown clock)")
 
     @property
     def measurement_delta_ns(self) -> int:
@@ -235,6 +239,35 @@ class PoseFix(Message):
 
     def covariance_matrix(self) -> np.ndarray:
         return np.asarray(self.covariance, dtype=float)
+
+
+class RsuDiagnosis(Message):
+    """One bus's assessment of one RSU, on keys.rsu_diagnosis(intersection, rsu, bus), about once a second
+    while the bus hears from it (toptag.fusion.trust.RsuAssessment): the RSU's time offset as the bus
+    estimates it (capture stamp minus exposure, in the bus's time; clock offset plus unmodelled capture
+    latency), whether the bus flags its camera for drift, and by how much its fixes disagree with the
+    other RSUs and the fused track. The RSU shows it in its RsuStatus; `advice` says what to do."""
+
+    TYPE: ClassVar[str] = "rsu_diagnosis"
+    type: Literal["rsu_diagnosis"] = "rsu_diagnosis"
+    bus_id: Id
+    rsu_id: Id
+    intersection_id: Id
+    reference_time_ns: TimeNs
+    time_offset_ns: int | None = Field(default=None, description="estimated time offset (signed, ns)")
+    time_offset_sigma_ns: DurationNs | None = None
+    clock_known: bool = Field(default=False, description="the RSU's fixes said how its clock is disciplined")
+    drift_flagged: bool = False
+    flagged_since_ns: TimeNs | None = None
+    disagreement_m: float = Field(default=0.0, ge=0, description="mean horizontal disagreement of its fixes, m")
+    disagreement_yaw_rad: float = Field(default=0.0, description="mean yaw disagreement (its fixes minus the track)")
+    disagreement_statistic: float = Field(default=0.0, ge=0, description="chi-square (3 dof) of its persistence")
+    fixes_accepted: Count = 0
+    fixes_gated: Count = 0
+    fixes_refused: Count = Field(default=0, description="refused because the RSU is flagged")
+    fixes_other: Count = 0
+    policy: Literal["downweight", "refuse"] = "downweight"
+    advice: str | None = Field(default=None, max_length=400)
 
 
 class RsuStatus(Message):
@@ -258,6 +291,9 @@ class RsuStatus(Message):
     detection_ns_mean: DurationNs | None = None
     detection_ns_max: DurationNs | None = None
     clock: ClockInfo = ClockInfo()
+    # What the buses think of this RSU (their RsuDiagnosis of the last seconds): time offset, drift flag.
+    diagnoses: list[RsuDiagnosis] = Field(default_factory=list)
+    drift_flagged: bool = Field(default=False, description="a bus flags this camera for drift: run toptag calibrate check")
 
 
 class DetectedTag(BaseModel):
@@ -311,6 +347,8 @@ class Frame(Message):
     width: int = Field(gt=0)
     height: int = Field(gt=0)
     image: bytes = Field(exclude=True, repr=False)
+    clock: ClockInfo | None = Field(default=None, description="the clock that stamped capture_time_ns, when "
+                                                              "the sender knows it (the simulator does)")
 
     @model_validator(mode="after")
     def _raw_size(self) -> Frame:
@@ -384,6 +422,14 @@ class FusionHealth(BaseModel):
     last_fix_delay_ns: DurationNs | None = Field(
         default=None, description="arrival minus capture time of the last accepted fix")
     last_fix_rsu: Id | None = None
+    # Every fix's path (toptag.fusion.state.Health): accepted + rejected (gated) + too_old + future +
+    # refused (from a flagged RSU) + other = every fix received.
+    too_old_fixes: Count = 0
+    future_fixes: Count = 0
+    flagged_rsu_fixes: Count = Field(default=0, description="from an RSU flagged for drift (down-weighted or refused)")
+    unknown_clock_fixes: Count = Field(default=0, description="from an RSU whose clock came without a bound")
+    other_fixes: Count = Field(default=0, description="duplicates, invalid, before start-up, waiting")
+    flagged_rsus: list[Id] = Field(default_factory=list)
 
 
 class FusedPose(Message):
@@ -406,6 +452,6 @@ class FusedPose(Message):
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Approach, Leave, ActiveSessions, PoseFix, RsuStatus, TagDetections, Frame, Imu,
+    m.TYPE: m for m in (Approach, Leave, ActiveSessions, PoseFix, RsuStatus, RsuDiagnosis, TagDetections, Frame, Imu,
                         GroundTruth, GnssFix, FusedPose)
 }

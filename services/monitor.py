@@ -2,7 +2,8 @@
 
 Listens to RSU heartbeats, every PoseFix, the simulator's ground truth and each bus's FusedPose, and
 compares them: fix error at the fix's capture time, fused error at the fused pose's time, and the
-capture-to-arrival latency of fixes. Prints a live table; `--report FILE` writes the summary as JSON.
+capture-to-arrival latency of fixes. Reads the buses' RsuDiagnosis too: each RSU's time offset as
+each bus estimates it, and drift flags. Prints a live table; `--report FILE` writes the summary as JSON.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol import keys
-from protocol.messages import FusedPose, GroundTruth, PoseFix, RsuStatus
+from protocol.messages import FusedPose, FusionHealth, GroundTruth, PoseFix, RsuDiagnosis, RsuStatus
 from protocol.transport import MessageCounters, subscribe_messages
 from protocol.transport.runner import add_service_arguments, run_service
 from toptag.units import ms_from_ns, ns_from_s, s_from_ns
@@ -88,6 +89,7 @@ class BusScore:
         self.fixes_by_rsu: dict[str, int] = defaultdict(int)
         self.fused = 0
         self.fused_status: str | None = None
+        self.health: FusionHealth | None = None
         self.pending_fixes: list[tuple[int, float, float]] = []  # awaiting truth at their time
         self.pending_fused: list[tuple[int, float, float, str | None]] = []
 
@@ -102,12 +104,16 @@ class Monitor:
         self.detect_ms: dict[str, list] = {}  # rsu -> [sum of ms, frames, max ms] over the run
         self.truth: dict[str, TruthTrack] = defaultdict(TruthTrack)
         self.buses: dict[str, BusScore] = defaultdict(BusScore)
+        self.diagnoses: dict[tuple[str, str], RsuDiagnosis] = {}  # (rsu, bus) -> latest
+        self.flags: dict[tuple[str, str], int] = {}  # (rsu, bus) -> flagged since (ns), as first reported
         self._subs = [
             subscribe_messages(session, keys.rsu_status(keys.ANY), RsuStatus, self._on_status, self.counters, log),
             subscribe_messages(session, keys.pose_fix(keys.ANY, keys.ANY, keys.ANY), PoseFix, self._on_fix,
                                self.counters, log),
             subscribe_messages(session, keys.ground_truth(keys.ANY), GroundTruth, self._on_truth, self.counters, log),
             subscribe_messages(session, keys.fused_pose(keys.ANY), FusedPose, self._on_fused, self.counters, log),
+            subscribe_messages(session, keys.rsu_diagnosis(keys.ANY, keys.ANY, keys.ANY), RsuDiagnosis,
+                               self._on_diagnosis, self.counters, log),
         ]
 
     def _on_status(self, m: RsuStatus) -> None:
@@ -121,6 +127,12 @@ class Monitor:
                 acc[1] += n
                 acc[2] = max(acc[2], ms_from_ns(m.detection_ns_max or 0))
             self.status[m.rsu_id] = m
+
+    def _on_diagnosis(self, m: RsuDiagnosis) -> None:
+        with self._lock:
+            self.diagnoses[(m.rsu_id, m.bus_id)] = m
+            if m.drift_flagged and m.flagged_since_ns is not None:
+                self.flags.setdefault((m.rsu_id, m.bus_id), m.flagged_since_ns)
 
     def _on_truth(self, m: GroundTruth) -> None:
         with self._lock:
@@ -147,6 +159,7 @@ class Monitor:
             b = self.buses[m.bus_id]
             b.fused += 1
             b.fused_status = m.health.status
+            b.health = m.health
             b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status))
 
     def _heard(self) -> None:
@@ -190,8 +203,11 @@ class Monitor:
                                              if self.detect_ms.get(rid, [0, 0])[1] else None),
                           "detect_ms_max": self.detect_ms[rid][2] if rid in self.detect_ms else None,
                           "detect_ms_last_s": None if s.detection_ns_mean is None else ms_from_ns(s.detection_ns_mean),
-                          "messages_rejected": s.messages_rejected}
+                          "messages_rejected": s.messages_rejected,
+                          "clock": s.clock.model_dump(), "drift_flagged_in_status": s.drift_flagged}
                     for rid, s in sorted(self.status.items())}
+            for rid in sorted({r for r, _ in self.diagnoses}):
+                rsus.setdefault(rid, {}).update(self._trust(rid))
             buses = {}
             for bus in sorted(set(self.buses) | set(self.truth)):
                 b = self.buses[bus]
@@ -213,29 +229,66 @@ class Monitor:
                     "last_fix_err_m": b.fix_err.last,
                     "last_fused_err_m": b.fused_err.last,
                     "last_fused_status": b.fused_status,
+                    "fix_paths": None if b.health is None else {
+                        "accepted": b.health.accepted_fixes, "gated": b.health.rejected_fixes,
+                        "too_old": b.health.too_old_fixes, "future": b.health.future_fixes,
+                        "from_flagged_rsu": b.health.flagged_rsu_fixes, "unknown_clock": b.health.unknown_clock_fixes,
+                        "other": b.health.other_fixes},
+                    "flagged_rsus": [] if b.health is None else b.health.flagged_rsus,
                 }
         return {"elapsed_s": round(time.monotonic() - self.started, 1), "rsus": rsus, "buses": buses,
                 "rejected_messages": self.counters.get("rejected")}
+
+    def _trust(self, rsu: str) -> dict:
+        """What the buses think of one RSU: time offsets (per bus), drift flags, the advice."""
+        diag = {bus: m for (r, bus), m in self.diagnoses.items() if r == rsu}
+        flagged = sorted(bus for bus, m in diag.items() if m.drift_flagged)
+        return {
+            "time_offset_ms": {bus: {"estimate": None if m.time_offset_ns is None else ms_from_ns(m.time_offset_ns),
+                                     "sigma": None if m.time_offset_sigma_ns is None else ms_from_ns(m.time_offset_sigma_ns),
+                                     "clock_known": m.clock_known} for bus, m in sorted(diag.items())},
+            "drift_flagged": bool(flagged), "flagged_by": flagged,
+            "ever_flagged_by": {bus: t for (r, bus), t in sorted(self.flags.items()) if r == rsu},
+            "disagreement_cm": {bus: round(100 * m.disagreement_m, 2) for bus, m in sorted(diag.items())},
+            "advice": next((diag[b].advice for b in flagged), None),
+        }
 
     def progress(self, summary: dict | None = None) -> str:
         s = summary or self.summary()
         lines = [f"t={s['elapsed_s']:6.1f}s"]
         for rid, r in s["rsus"].items():
+            if "frames" not in r:  # heard of only through the buses' diagnoses
+                lines.append(f"  {rid:8s} (no status){_trust_cells(r)}")
+                continue
             det = "-" if r["detect_ms_last_s"] is None else f"{r['detect_ms_last_s']:.1f} ms"
             lines.append(f"  {rid:8s} buses {','.join(r['active_buses']) or '-':16s} frames {r['frames']:5d} "
                          f"processed {r['frames_processed']:5d} idle {r['frames_idle']:5d} "
-                         f"behind {r['frames_skipped_busy']:3d} detect {det:>8s} fixes {r['fixes_published']}")
+                         f"behind {r['frames_skipped_busy']:3d} detect {det:>8s} fixes {r['fixes_published']}"
+                         f"{_trust_cells(r)}")
         for bus, b in s["buses"].items():
             fe = "-" if b["last_fix_err_m"] is None else f"{100 * b['last_fix_err_m']:.1f} cm"
             ue = "-" if b["last_fused_err_m"] is None else f"{100 * b['last_fused_err_m']:.1f} cm"
             lat = "-" if b["latency_ms_p50"] is None else f"{b['latency_ms_p50']:.0f} ms"
+            flagged = f" flagged RSUs {','.join(b['flagged_rsus'])}" if b.get("flagged_rsus") else ""
             lines.append(f"  {bus:8s} fixes {b['fixes_received']:5d} last fix err {fe:>9s} fused err {ue:>9s} "
-                         f"({b['last_fused_status'] or '-'}) latency p50 {lat}")
+                         f"({b['last_fused_status'] or '-'}) latency p50 {lat}{flagged}")
         return "\n".join(lines)
 
     def close(self) -> None:
         for s in self._subs:
             s.close()
+
+
+def _trust_cells(r: dict) -> str:
+    """' offset bus-17 +29.8±1.1 ms DRIFT (bus-17)' for the live table."""
+    cells = []
+    for bus, o in (r.get("time_offset_ms") or {}).items():
+        if o["estimate"] is not None:
+            cells.append(f"{bus} {o['estimate']:+.1f}±{o['sigma']:.1f} ms")
+    text = f" offset {', '.join(cells)}" if cells else ""
+    if r.get("drift_flagged"):
+        text += f" DRIFT ({','.join(r['flagged_by'])}: run toptag calibrate check)"
+    return text
 
 
 def write_report(path: str | Path, summary: dict) -> None:

@@ -7,7 +7,10 @@ Plays a scenario (sim.scenario; default: the bundled toptag/data/demo/scenario.j
 - every RSU: a Frame (JPEG of sim.render at the scenario's image model) every 1/fps s on
   keys.frame(rsu_id). RSUs are staggered within the period to spread the CPU load. A frame's
   capture_time_ns is its scheduled tick, which is also the instant of the truth used to render it; seq
-  is the tick index (a skipped tick leaves a gap in seq).
+  is the tick index (a skipped tick leaves a gap in seq). Its clock is "sim" (exact). The scenario's
+  faults (sim.faults; World.capture) change that for one RSU: a clock offset moves the stamp (and the
+  clock is "system", undisciplined), a capture latency renders an earlier instant, a drift renders
+  with the turned camera.
 - every bus on the road: Imu at imu_hz (keys.imu; gyro_z, accel_x/y gravity-compensated, wheel_speed,
   seq +1 per sample), GroundTruth at truth_hz (keys.ground_truth; z = roof height), GnssFix at gnss_hz
   (keys.gnss; N(0, gnss_sigma_m) per axis, none inside the map's gnss_shadow_radius). Samples lie on
@@ -35,7 +38,7 @@ import cv2
 import numpy as np
 
 from protocol import keys
-from protocol.messages import Frame, GnssFix, GroundTruth, Imu
+from protocol.messages import ClockInfo, Frame, GnssFix, GroundTruth, Imu
 from protocol.transport import MessagePublisher
 from protocol.transport.runner import add_service_arguments, run_service
 from sim.scenario import bundled_scenario_path, load_scenario
@@ -147,6 +150,9 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
     n = len(world.rsu_ids)
     next_k = [0] * n
     stats = FrameStats(world.rsu_ids)
+    # The clock that stamps each RSU's frames: the simulator's, exact, unless the scenario puts it off.
+    clocks = [ClockInfo(source="sim", sync_uncertainty_ns=0) if f.clock_disciplined else ClockInfo(source="system")
+              for f in world.faults]
     sensors = SensorLoop(world, pubs, stop)
     sensors.start()
     log.info("sim running: t0_ns=%d, %d RSUs at %s fps, buses %s, %s%s", t0, n,
@@ -185,11 +191,11 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
                 next_k[r] = k
                 continue
             c0 = time.perf_counter()
-            jpeg = world.render_jpeg(r, t)
+            jpeg, stamp = world.capture(r, t)
             stats.render_ms.append((time.perf_counter() - c0) * 1e3)
             cam = world.cameras[r]
-            pubs.frames[cam.id].put(Frame(rsu_id=cam.id, capture_time_ns=t, seq=next_k[r], encoding="jpeg",
-                                          width=cam.width, height=cam.height, image=jpeg))
+            pubs.frames[cam.id].put(Frame(rsu_id=cam.id, capture_time_ns=stamp, seq=next_k[r], encoding="jpeg",
+                                          width=cam.width, height=cam.height, image=jpeg, clock=clocks[r]))
             stats.published[cam.id] += 1
             next_k[r] += 1
     finally:

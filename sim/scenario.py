@@ -14,7 +14,9 @@ default is toptag/data/demo/scenario.json, see `bundled_scenario_path()`):
                  "legs": [{"route": "straight", "approach": "w", "start_s": 5}]}],
      "imu_hz": 100, "truth_hz": 20, "gnss_hz": 1, "gnss_sigma_m": 2.0,
      "image_model": {"noise_sigma": 3.0}, "imu_model": {"gyro_bias_sigma": 0.005},
-     "loop": true, "loop_gap_s": 3, "seed": 1}
+     "loop": true, "loop_gap_s": 3, "seed": 1,
+     "faults": {"rsu-ne": {"clock_offset_ms": 40},
+                "rsu-sw": {"drift": {"yaw_deg": 0.5, "at_s": 20, "ramp_s": 0}}}}
 
 Legs (`Leg`): a route of sim.motion (`route` straight|left|right|stop, `approach` w|s|e|n: the side the
 vehicle comes from) started `start_s` seconds after the scenario start (after every loop repeat, the
@@ -24,6 +26,10 @@ IMU, truth or GNSS is published for it. A bus's legs must not overlap in time.
 
 `loop`: after the last leg of any vehicle ends, wait `loop_gap_s` and start the whole scenario again
 (period = last leg end + loop_gap_s).
+
+`faults` (sim.faults.RsuFault, keyed by RSU id = camera id): a clock offset or a capture latency shifts
+that RSU's frame stamps, a drift turns the camera the simulator renders with while the RSU keeps its
+surveyed camera file.
 
 Errors: `load_scenario` raises toptag.inputs.InputError with one line naming the file and the field.
 """
@@ -36,6 +42,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from sim.faults import RsuFault
 from sim.image_model import ImageModel
 from sim.motion import STOP_LINE, ImuModel, Trajectory, bus_trajectory
 from toptag.inputs import InputError, describe_validation_error, read_json
@@ -144,6 +151,7 @@ class Scenario(BaseModel):
     loop: bool = False
     loop_gap_s: float = Field(default=3.0, gt=0, description="pause between the last leg end and the repeat")
     seed: int = Field(default=0, ge=0)
+    faults: dict[str, RsuFault] = Field(default_factory=dict, description="per RSU id: injected faults")
 
     @field_validator("rsus", mode="before")
     @classmethod

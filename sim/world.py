@@ -6,6 +6,7 @@
     world.vehicles_at(t_ns)              # -> [PlacedVehicle]: the tagged buses on the road at t_ns
     world.truth_at(t_ns)                 # -> {bus_id: BusState}
     world.render_jpeg("rsu-sw", t_ns)    # the RSU frame of the scene at t_ns (JPEG bytes)
+    world.capture("rsu-sw", tick_ns)     # the frame published at a tick: (JPEG, capture stamp), faults applied
     world.imu_between("bus-17", a, b)    # IMU samples on the imu_hz grid in (a, b]
 
 Time. Every time is integer nanoseconds on the simulator's clock; `start(t0_ns)` says when the
@@ -17,6 +18,11 @@ t0 + round(k * 1e9 / rate) (IMU, truth, GNSS; frames of RSU r at t0 + r/n_rsu * 
 Presence. A bus exists only during its legs: it is rendered, and it has IMU, truth and GNSS samples,
 only then. Between legs it is "parked away" (nothing at all), so a consumer knows a bus is on the road
 by its samples, and where by its GNSS fixes (a leg starts 55 m out by default, outside the GNSS shadow).
+
+Faults (the scenario's `faults`, sim.faults). The frame an RSU gets at tick t shows the scene at
+t - capture latency, taken by its camera turned by its drift at that time (the angle kept to
+DRIFT_STEP_DEG steps, so a ramp rebuilds a camera's raster cache a bounded number of times), and is
+stamped t + clock offset. The RSU's camera file stays the surveyed one.
 
 IMU. Per bus, one sensor for the whole run with sim.motion.ImuModel's noise model (the scenario's
 imu_model at imu_hz): a turn-on gyro bias that random-walks through time (also while parked), a
@@ -31,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sim.faults import RsuFault, turned
 from sim.image_model import ImageModel
 from sim.motion import Trajectory, bus_trajectory
 from sim.raster import raster_for
@@ -40,8 +47,10 @@ from sim.scenario import BusEntry, Leg, Scenario, TruckEntry, leg_seed
 from toptag.camera import Camera
 from toptag.inputs import InputError
 from toptag.site import MapFile
-from toptag.units import NS_PER_S, ns_from_s, s_from_ns
+from toptag.units import NS_PER_MS, NS_PER_S, ns_from_s, s_from_ns
 from toptag.vehicle import Vehicle
+
+DRIFT_STEP_DEG = 0.005
 
 
 
@@ -190,6 +199,11 @@ class World:
             raise InputError(f"scenario: two RSU cameras share the id {_first_dup(ids)!r}")
         self.fps = [sc.rsu_fps(i) for i in range(len(self.cameras))]
         self._cam_index = {c.id: i for i, c in enumerate(self.cameras)}
+        unknown = sorted(set(sc.faults) - set(ids))
+        if unknown:
+            raise InputError(f"scenario: faults name RSUs it does not have: {', '.join(unknown)} "
+                             f"(RSUs: {', '.join(ids)})")
+        self.faults = [sc.faults.get(c.id, RsuFault()) for c in self.cameras]
         vehicles = vehicles if vehicles is not None else [Vehicle.load(b.vehicle) for b in sc.buses]
         if len(vehicles) != len(sc.buses):
             raise ValueError("one vehicle per scenario bus")
@@ -422,11 +436,30 @@ class World:
         return out
 
     # ---- frames ----------------------------------------------------------------------------
-    def render_jpeg(self, rsu: int | str, t_ns: int) -> bytes:
-        """The RSU's camera frame of the scene at t_ns (JPEG, the scenario's image model)."""
+    def render_jpeg(self, rsu: int | str, t_ns: int, camera: Camera | None = None) -> bytes:
+        """The RSU's camera frame of the scene at t_ns (JPEG, the scenario's image model), taken by
+        `camera` (default: the RSU's surveyed camera)."""
         r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
-        return render_jpeg(self.cameras[r], self.vehicles_at(t_ns), self.occluders_at(t_ns), self.model,
+        return render_jpeg(camera or self.cameras[r], self.vehicles_at(t_ns), self.occluders_at(t_ns), self.model,
                            self._render_rng[r])
+
+    def actual_camera(self, rsu: int | str, t_ns: int) -> Camera:
+        """The RSU's camera as it really is at t_ns: turned by its drift (in DRIFT_STEP_DEG steps)."""
+        r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
+        drift = self.faults[r].drift
+        if drift is None:
+            return self.cameras[r]
+        yaw, pitch = drift.angles(s_from_ns(t_ns - self.t0_ns))
+        step = math.radians(DRIFT_STEP_DEG)
+        return turned(self.cameras[r], round(yaw / step) * step, round(pitch / step) * step)
+
+    def capture(self, rsu: int | str, tick_ns: int) -> tuple[bytes, int]:
+        """The frame the RSU gets at tick_ns and its capture stamp (see Faults in the module docstring)."""
+        r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
+        f = self.faults[r]
+        exposure = tick_ns - int(round(f.capture_latency_ms * NS_PER_MS))
+        jpeg = self.render_jpeg(r, exposure, self.actual_camera(r, exposure))
+        return jpeg, tick_ns + int(round(f.clock_offset_ms * NS_PER_MS))
 
     def warm_up(self) -> None:
         """Build every camera's background cache and render once (call before the clock starts)."""
@@ -435,9 +468,12 @@ class World:
             b = self.buses[0]
             probe = [PlacedVehicle(b.vehicle, float(self.center[0]), float(self.center[1]), 0.3, speed=5.0)]
         rng = np.random.default_rng(0)
-        for cam in self.cameras:
-            raster_for(cam).finished_background(self.model)
-            render_jpeg(cam, probe, (), self.model, rng)
+        for r, cam in enumerate(self.cameras):
+            drift = self.faults[r].drift
+            later = [self.actual_camera(r, self.t0_ns + ns_from_s(drift.at_s + drift.ramp_s))] if drift else []
+            for c in [cam] + later:  # a stepped camera's cache too, so the step does not stall the loop
+                raster_for(c).finished_background(self.model)
+                render_jpeg(c, probe, (), self.model, rng)
 
     # ---- checks ----------------------------------------------------------------------------
     def conflicts(self, step_s: float = 0.1, conservative: bool = True,

@@ -156,6 +156,7 @@ def make_samples() -> dict:
         Imu,
         Leave,
         PoseFix,
+        RsuDiagnosis,
         RsuStatus,
         TagDetections,
     )
@@ -167,17 +168,25 @@ def make_samples() -> dict:
     cov = [[0.01, 0.001, 0.0], [0.001, 0.02, 0.0], [0.0, 0.0, 0.0004]]
     approach = Approach(bus_id=vehicle.id, intersection_id="x1", vehicle=vehicle, reference_time_ns=t,
                         clock=ClockInfo(source="ptp", sync_uncertainty_ns=50_000), seq=3)
+    diagnosis = RsuDiagnosis(bus_id=vehicle.id, rsu_id="rsu-sw", intersection_id="x1", reference_time_ns=t,
+                             time_offset_ns=-31_000_000, time_offset_sigma_ns=1_200_000, clock_known=False,
+                             drift_flagged=True, flagged_since_ns=t - 4 * 10**9, disagreement_m=0.052,
+                             disagreement_yaw_rad=-0.0035, disagreement_statistic=88.0, fixes_accepted=40,
+                             fixes_gated=3, advice="check its calibration: toptag calibrate check ...")
     samples = [
         approach,
         Leave(bus_id=vehicle.id, intersection_id="x1", reference_time_ns=t + 9, reason="passed"),
         ActiveSessions(intersection_id="x1", responder_id=vehicle.id, reference_time_ns=t, sessions=[approach]),
         PoseFix(bus_id=vehicle.id, rsu_id="rsu-sw", intersection_id="x1", capture_time_ns=t,
                 publish_time_ns=t + 35_000_000, x=3.25, y=-7.5, z=3.02, yaw=0.7, covariance=cov,
-                method="s_opt", tags_used=[3, 7], reprojection_rms_px=0.41, frame_seq=1234),
+                method="s_opt", tags_used=[3, 7], reprojection_rms_px=0.41, frame_seq=1234,
+                clock=ClockInfo(source="system")),
+        diagnosis,
         RsuStatus(rsu_id="rsu-sw", intersection_id="x1", reference_time_ns=t, started_ns=t - 10**9,
                   active_buses=[vehicle.id], frames_received=100, frames_processed=90, frames_skipped=10,
                   fixes_published=80, messages_rejected=1, detection_ns_mean=21_000_000,
-                  detection_ns_max=40_000_000),
+                  detection_ns_max=40_000_000, clock=ClockInfo(source="ntp", sync_uncertainty_ns=800_000),
+                  diagnoses=[diagnosis], drift_flagged=True),
         TagDetections(rsu_id="rsu-sw", capture_time_ns=t, frame_seq=1234, width=960, height=720,
                       tags=[DetectedTag(bus_id=vehicle.id, tag_id=3, corners=[(10.5, 20.0), (40.0, 21.0), (39.5, 50.0),
                                                                                (11.0, 49.0)]),
@@ -192,7 +201,8 @@ def make_samples() -> dict:
         GnssFix(bus_id=vehicle.id, t_ns=t, x=-41.0, y=-1.5, sigma_m=2.0),
         FusedPose(bus_id=vehicle.id, t_ns=t, x=1.0, y=2.0, yaw=0.1, speed=5.0, yaw_rate=0.05, covariance=cov,
                   health=FusionHealth(accepted_fixes=10, rejected_fixes=2, since_last_fix_ns=80_000_000,
-                                      last_fix_delay_ns=35_000_000, last_fix_rsu="rsu-sw")),
+                                      last_fix_delay_ns=35_000_000, last_fix_rsu="rsu-sw", too_old_fixes=1,
+                                      flagged_rsu_fixes=4, unknown_clock_fixes=12, flagged_rsus=["rsu-sw"])),
     ]
     return {type(m).__name__: m for m in samples}
 

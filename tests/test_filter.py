@@ -25,8 +25,9 @@ def _wrap(a):
 
 
 def make_fixes(traj, rng, rsus=("rsu-sw", "rsu-se", "rsu-ne"), rate_hz=10.0, t_from=0.0, t_to=None,
-               sigma=0.04, yaw_sigma_deg=0.15, range_m=22.0, skip=None):
-    """Capture-stamped fixes with noise drawn from their reported covariance."""
+               sigma=0.04, yaw_sigma_deg=0.15, range_m=22.0, skip=None, clock_bound_ns=0):
+    """Capture-stamped fixes with noise drawn from their reported covariance, from RSUs whose clocks
+    are exact (bound 0) unless said otherwise."""
     t_to = traj.duration if t_to is None else t_to
     C = np.diag([sigma ** 2, sigma ** 2, math.radians(yaw_sigma_deg) ** 2])
     L = np.linalg.cholesky(C)
@@ -40,7 +41,8 @@ def make_fixes(traj, rng, rsus=("rsu-sw", "rsu-se", "rsu-ne"), rate_hz=10.0, t_f
             if skip is not None and skip[0] <= ti < skip[1]:
                 continue
             n = L @ rng.standard_normal(3)
-            out.append(Fix(traj.t_ns(ti), st.x[i] + n[0], st.y[i] + n[1], _wrap(st.yaw[i] + n[2]), C, rid, i))
+            out.append(Fix(traj.t_ns(ti), st.x[i] + n[0], st.y[i] + n[1], _wrap(st.yaw[i] + n[2]), C, rid, i,
+                           clock_bound_ns=clock_bound_ns))
     out.sort(key=lambda f: (f.t_ns, f.source))
     return out
 
@@ -286,7 +288,9 @@ def test_three_second_outage_degrades_honestly_and_recovers():
         assert pos_err(rec, traj) < 0.06
         assert rec.health.since_last_fix_s < 0.5
     before, during_end, after = map(np.array, (before, during_end, after))
-    assert np.all(during_end > 2.0 * before)  # the covariance grows during the outage ...
+    # the covariance grows during the outage (before it, the RSUs' time offsets already widen it along
+    # the track: a single RSU's offset is confounded with the position there) ...
+    assert np.all(during_end > 1.5 * before) and np.all(during_end > before + 0.03)
     assert np.all(after < 1.5 * before)  # ... and shrinks back once fixes return
     assert status_gap == {"degraded"} and status_after == {"ok"}
     lo, hi = chi2.ppf([0.005, 0.995], 3 * runs) / runs

@@ -21,7 +21,9 @@ class Fix:
     (x, y, yaw); source: the RSU id; seq: the per-source sequence number (the frame's; optional:
     duplicates are recognised by source and sequence, or by source and capture time); arrival_ns:
     when the bus received it (optional; feeds only the filter's health report). z (roof height, m),
-    method (solver), tags (tag ids used) and rms_px (reprojection RMS) describe how it was made."""
+    method (solver), tags (tag ids used) and rms_px (reprojection RMS) describe how it was made.
+    clock_bound_ns: a bound on the offset of the clock that stamped t_ns (from the RSU's ClockInfo); None
+    when that clock is not known to be disciplined (the filter then expects a larger time offset)."""
     t_ns: int
     x: float
     y: float
@@ -35,6 +37,7 @@ class Fix:
     tags: tuple[int, ...] = field(default=())
     rms_px: float | None = None
     ambiguous: bool = False  # a lone tag whose mirrored pose fits as well: cov covers both (issue 11)
+    clock_bound_ns: int | None = None
 
     def __post_init__(self):
         self.t_ns = int(self.t_ns)
@@ -44,6 +47,7 @@ class Fix:
         self.source = str(self.source)
         self.seq = None if self.seq is None else int(self.seq)
         self.tags = tuple(int(t) for t in self.tags)
+        self.clock_bound_ns = None if self.clock_bound_ns is None else int(self.clock_bound_ns)
 
     @classmethod
     def from_solution(cls, solution: PoseSolution, t_ns: int, source: str, seq: int | None = None) -> Fix:

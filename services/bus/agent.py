@@ -4,7 +4,10 @@ Knows the map of intersections. From its position (GNSS when it has one, its fus
 announces itself (Approach with its code bag, repeated every second, a liveliness token and an
 answer to session queries) when it enters an intersection's approach radius, and leaves (Leave, token
 withdrawn) when it exits. It fuses its IMU/odometry with the RSUs' PoseFixes, each applied at its
-capture time, and publishes FusedPose at 50 Hz with covariance and health.
+capture time, and publishes FusedPose at 50 Hz with covariance and health. Once a second it publishes
+its assessment of every RSU it has heard from lately (RsuDiagnosis: the RSU's estimated time offset,
+its drift flag and disagreement) on keys.rsu_diagnosis, which the RSUs and the monitor read. Its
+Approach carries its host's clock (toptag.hostclock).
 """
 from __future__ import annotations
 
@@ -16,16 +19,16 @@ import time
 import numpy as np
 
 from protocol import keys
-from protocol.convert import fix_from_message, fused_to_message
+from protocol.convert import assessment_to_message, clock_to_message, fix_from_message, fused_to_message
 from protocol.messages import (
     Approach,
-    ClockInfo,
     CoarsePosition,
     FusedPose,
     GnssFix,
     Imu,
     Leave,
     PoseFix,
+    RsuDiagnosis,
 )
 from protocol.transport import (
     MessageCounters,
@@ -38,6 +41,7 @@ from protocol.transport import (
 from protocol.transport.runner import ServiceSettings, add_service_arguments, run_service
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.fusion.presence import IntersectionPresence
+from toptag.hostclock import HostClockProbe
 from toptag.site import IntersectionSpec, MapFile
 from toptag.units import ms_from_ns, s_from_ns
 from toptag.vehicle import Vehicle
@@ -46,6 +50,8 @@ log = logging.getLogger(__name__)
 
 IMU_GAP_RESET_S = 1.0  # without IMU for this long the state cannot be propagated: start afresh
 APPROACH_REPEAT_S = 1.0  # one-shot messages can be lost when routes are new: repeat the announcement
+DIAGNOSIS_PERIOD_S = 1.0
+DIAGNOSIS_KEEP_S = 30.0  # an RSU not heard from for this long is no longer assessed on the wire
 
 
 class BusSettings(ServiceSettings):
@@ -79,6 +85,11 @@ class BusAgent:
         self._fix_sub = None
         self._last_announce = 0.0
         self._position: CoarsePosition | None = None
+        self.clock = HostClockProbe().start()
+        self._rsu_intersection: dict[str, str] = {}  # RSU -> the intersection its fixes came from
+        self._diag_pubs: dict[str, MessagePublisher] = {}
+        self._last_diagnosis = 0.0
+        self._flagged: set[str] = set()
         self._fused_pub = MessagePublisher(session, keys.fused_pose(self.bus_id), FusedPose)
         self._subs = [
             subscribe_messages(session, keys.imu(self.bus_id), Imu, self._on_imu, self.counters, log),
@@ -89,8 +100,9 @@ class BusAgent:
     def _on_imu(self, m: Imu) -> None:
         with self._lock:
             if self._last_imu_ns is not None and s_from_ns(m.t_ns - self._last_imu_ns) > IMU_GAP_RESET_S:
-                # The vehicle was off (or the stream broke): nothing in the buffer describes it any more.
-                self.filter = BusFilter(self.filter_config)
+                # The vehicle was off (or the stream broke): nothing in the buffer describes it any more;
+                # what it learnt of the RSUs (time offsets, drift flags) still holds.
+                self.filter = BusFilter(self.filter_config, memory=self.filter.memory())
                 self.filter_resets += 1
                 log.info("IMU gap of %.1f s: filter restarted", s_from_ns(m.t_ns - self._last_imu_ns))
             self._last_imu_ns = m.t_ns
@@ -106,6 +118,7 @@ class BusAgent:
             return
         with self._lock:
             self.fixes_received += 1
+            self._rsu_intersection[m.rsu_id] = m.intersection_id
             self.fix_latency_ns.append(now - m.capture_time_ns)
             self.filter.add_fix(fix_from_message(m, arrival_ns=now))
 
@@ -124,7 +137,8 @@ class BusAgent:
 
     def _enter(self, inter: IntersectionSpec) -> None:
         self._approach = Approach(bus_id=self.bus_id, intersection_id=inter.id, vehicle=self.vehicle.spec,
-                                  reference_time_ns=time.time_ns(), clock=ClockInfo(source="system"), seq=0)
+                                  reference_time_ns=time.time_ns(), clock=clock_to_message(self.clock.current()),
+                                  seq=0)
         self._fix_sub = subscribe_messages(self.session, keys.pose_fix(inter.id, self.bus_id, keys.ANY), PoseFix,
                                            self._on_fix, self.counters, log)
         # Queryable and token before the announcement: an RSU that hears the Approach late, or starts
@@ -172,6 +186,32 @@ class BusAgent:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
         if est is not None:
             self._fused_pub.put(fused_to_message(est, self.bus_id))
+        if time.monotonic() - self._last_diagnosis >= DIAGNOSIS_PERIOD_S:
+            self._last_diagnosis = time.monotonic()
+            self.publish_diagnoses(now_ns)
+
+    def publish_diagnoses(self, now_ns: int) -> list[RsuDiagnosis]:
+        """The bus's RsuDiagnosis of every RSU heard from in the last DIAGNOSIS_KEEP_S, published."""
+        with self._lock:
+            assessed = self.filter.rsu_assessments()
+            where = dict(self._rsu_intersection)
+        out = []
+        for rsu, a in assessed.items():
+            if rsu not in where or (now_ns - a.last_fix_ns) * 1e-9 > DIAGNOSIS_KEEP_S:
+                continue
+            msg = assessment_to_message(a, self.bus_id, where[rsu], now_ns)
+            key = keys.key_of(msg)
+            pub = self._diag_pubs.get(key)
+            if pub is None:
+                pub = self._diag_pubs[key] = MessagePublisher(self.session, key, RsuDiagnosis)
+            pub.put(msg)
+            out.append(msg)
+            if a.flagged and rsu not in self._flagged:
+                log.warning("RSU %s flagged for drift: %s", rsu, a.advice)
+            elif not a.flagged and rsu in self._flagged:
+                log.info("RSU %s no longer flagged for drift (disagreement %.1f cm)", rsu, 100 * a.disagreement_m)
+            (self._flagged.add if a.flagged else self._flagged.discard)(rsu)
+        return out
 
     def run(self, duration: float | None = None) -> None:
         t_end = None if duration is None else time.monotonic() + duration
@@ -194,6 +234,9 @@ class BusAgent:
         for s in self._subs:
             s.close()
         self._fused_pub.close()
+        for p in self._diag_pubs.values():
+            p.close()
+        self.clock.close()
 
     def latency_ms(self) -> dict:
         lat = ms_from_ns(np.asarray(self.fix_latency_ns, dtype=float))

@@ -3,7 +3,9 @@
 Idle while no bus is in session: frames arrive and are dropped undecoded. A bus's Approach (or, for an
 RSU started late, the answer to a session query) adds its code bag to the pipeline; the RSU then
 detects only those tags and publishes one PoseFix per bus per frame, stamped with the frame's capture
-time. Leave, or the bus's liveliness token vanishing, ends the session. RsuStatus every second.
+time. Leave, or the bus's liveliness token vanishing, ends the session. RsuStatus every second, with
+the host's clock (toptag.hostclock) and what the buses think of this RSU (their RsuDiagnosis on
+keys.rsu_diagnosis: its time offset, and whether its camera is flagged for drift).
 """
 from __future__ import annotations
 
@@ -18,9 +20,9 @@ import numpy as np
 
 from protocol import keys
 from protocol.codec import ProtocolError
-from protocol.convert import fix_to_message
+from protocol.convert import clock_to_message, fix_to_message
 from protocol.images import frame_to_gray
-from protocol.messages import Approach, DetectedTag, Frame, Leave, PoseFix, RsuStatus, TagDetections
+from protocol.messages import Approach, DetectedTag, Frame, Leave, PoseFix, RsuDiagnosis, RsuStatus, TagDetections
 from protocol.transport import (
     REJECTED,
     MessageCounters,
@@ -32,11 +34,14 @@ from protocol.transport import (
 )
 from protocol.transport.runner import ServiceSettings, add_service_arguments, run_service
 from toptag.camera import Camera
+from toptag.hostclock import HostClockProbe
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.solvers import METHODS
 from toptag.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
+
+DIAGNOSIS_SHOWN_S = 10.0  # a bus's diagnosis of this RSU is shown in RsuStatus this long after it came
 
 
 class RsuSettings(ServiceSettings):
@@ -76,6 +81,8 @@ class RsuService:
         self._fix_pubs: dict[str, MessagePublisher] = {}
         self._status_pub = MessagePublisher(session, keys.rsu_status(self.rsu_id), RsuStatus)
         self._detections_pub = MessagePublisher(session, keys.detections(self.rsu_id), TagDetections)
+        self.clock = HostClockProbe().start()
+        self._diagnoses: dict[str, tuple[RsuDiagnosis, float]] = {}  # bus -> (latest, monotonic arrival)
         self._subs = [
             subscribe_messages(session, keys.approach(intersection, keys.ANY), Approach,
                                lambda m: self._changes.put(("approach", m)), self.msg_counters, log),
@@ -84,6 +91,8 @@ class RsuService:
             # The other RSUs' fixes say where a bus is: search there, or not at all when it is out of view.
             subscribe_messages(session, keys.pose_fix(intersection, keys.ANY, keys.ANY), PoseFix,
                                self._on_peer_fix, self.msg_counters, log),
+            subscribe_messages(session, keys.rsu_diagnosis(intersection, self.rsu_id, keys.ANY), RsuDiagnosis,
+                               self._on_diagnosis, self.msg_counters, log),
         ]
         self._frames = latest_receiver(session, keys.frame(self.rsu_id), Frame, self.msg_counters, log)
         self._watch = watch_buses(session, intersection,
@@ -91,6 +100,14 @@ class RsuService:
                                   on_vanish=lambda bus: self._changes.put(("leave", bus, "liveliness lost")),
                                   logger=log)
         self._changes.put(("query", None))
+
+    def _on_diagnosis(self, m: RsuDiagnosis) -> None:
+        before = self._diagnoses.get(m.bus_id)
+        if m.drift_flagged and (before is None or not before[0].drift_flagged):
+            log.warning("bus %s flags this camera for drift: %s", m.bus_id, m.advice)
+        elif before is not None and before[0].drift_flagged and not m.drift_flagged:
+            log.info("bus %s no longer flags this camera", m.bus_id)
+        self._diagnoses[m.bus_id] = (m, time.monotonic())
 
     def _on_peer_fix(self, m: PoseFix) -> None:
         if m.rsu_id != self.rsu_id:
@@ -184,11 +201,13 @@ class RsuService:
         processing_ns = time.perf_counter_ns() - t0
         c.detect_ns.append(processing_ns)
         c.frames_processed += 1
+        clock = frame.clock or clock_to_message(self.clock.current())  # the clock of the capture stamp
         published = 0
         for bus, vr in result.vehicles.items():
             if vr.fix is None or bus not in self._fix_pubs:
                 continue
-            self._fix_pubs[bus].put(fix_to_message(vr.fix, bus, self.intersection, time.time_ns(), processing_ns))
+            self._fix_pubs[bus].put(fix_to_message(vr.fix, bus, self.intersection, time.time_ns(), processing_ns,
+                                                   clock))
             published += 1
         c.fixes_published += published
         c.frames_with_fix += bool(published)
@@ -217,9 +236,16 @@ class RsuService:
                         frames_with_fix=c.frames_with_fix, fixes_published=c.fixes_published,
                         active_s=c.active_s, messages_rejected=self.msg_counters.get(REJECTED),
                         detection_ns_mean=int(np.mean(det)) if det else None,
-                        detection_ns_max=int(np.max(det)) if det else None)
+                        detection_ns_max=int(np.max(det)) if det else None,
+                        clock=clock_to_message(self.clock.current()), **self._trust())
         c.detect_ns = []
         return msg
+
+    def _trust(self) -> dict:
+        """The buses' recent diagnoses of this RSU, for its RsuStatus."""
+        now = time.monotonic()
+        recent = [m for m, t in list(self._diagnoses.values()) if now - t <= DIAGNOSIS_SHOWN_S]
+        return {"diagnoses": recent, "drift_flagged": any(m.drift_flagged for m in recent)}
 
     # ---- loop ---------------------------------------------------------------------------------
     def run(self, duration: float | None = None, status_period: float = 1.0) -> None:
@@ -254,6 +280,7 @@ class RsuService:
             p.close()
         self._status_pub.close()
         self._detections_pub.close()
+        self.clock.close()
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,22 +1,35 @@
-"""`toptag eval fusion`: the bus filter against latency, on the simulator's truth.
+"""`toptag eval fusion`: the bus filter against latency, clock offsets and drifted cameras, on the
+simulator's truth.
 
-A bus turns left through the SPEC intersection at 30 km/h (sim.motion). Its IMU / wheel odometry is
-synthesised at 100 Hz (sim.motion.ImuModel). Corner RSUs at (±9, ±9, 8) send pose fixes at 10 Hz each
-while the bus is within `range_m` of them, with the error model below, and every fix reaches the bus
-`latency + jitter` later (delay = max(0, latency + N(0, jitter)), so fixes also arrive out of order).
+A bus drives a route through the SPEC intersection at 30 km/h (sim.motion; default a left turn; several
+routes, comma-separated, are driven in turn by the runs). Its IMU / wheel odometry is synthesised at
+100 Hz (sim.motion.ImuModel). Corner RSUs at (±9, ±9, 8) send pose fixes at 10 Hz each while the bus
+is within `range_m` of them, with the error model below, and every fix reaches the bus `latency +
+jitter` later (delay = max(0, latency + N(0, jitter)), so fixes also arrive out of order).
 
-Three estimators see the same data:
-  fused           toptag.fusion.filter.BusFilter: each fix applied at its capture time, buffer re-propagated
+Four estimators see the same data:
+  fused           toptag.fusion.filter.BusFilter: each fix applied at its capture time, buffer re-propagated,
+                  every RSU's time offset estimated, drifted cameras flagged
+  plain           the same filter with offsets taken as zero and no drift detection (the filter before
+                  issue 13; run only when faults are injected)
   naive           the same EKF, each fix applied on arrival as if it were current (no gate)
   dead reckoning  the same EKF from the true initial pose, IMU / odometry only
 
 Fix error model ("study"): per RSU, position noise sigma = 3 cm at the RSU growing linearly to 5 cm
 at `range_m` (horizontal distance), 1.3x larger along the line of sight; yaw sigma 0.1° -> 0.2°;
-independent between fixes; the reported covariance is exactly the covariance of the noise.
-(A live image pipeline can be plugged in with `run(..., fix_source=callable)`.)
+independent between fixes; the reported covariance is exactly the covariance of the noise. Healthy
+RSUs stamp with a disciplined clock (a 1 ms bound, chrony-grade).
 
-Writes DIR/results.json, DIR/fusion_error_vs_latency.png, DIR/fusion_trajectory_error.png and
-DIR/fusion_nees.png. Run: `python -m sim.studies.fusion --out DIR` (or `toptag eval fusion`).
+Faults (sim.faults, per RSU): `--clock-offset-ms RSU=MS` (its clock is off and says it is not
+disciplined), `--capture-latency-ms RSU=MS` (stamped on arrival of the frame), `--drift-deg
+RSU=DEG[@T[/RAMP]]` (its camera turns by DEG about the vertical at T s, or over RAMP s from T; the
+RSU keeps its surveyed camera, so its fixes turn the other way about its pole: sim.faults.seen_pose).
+With faults, every latency is run twice on the same noise (common random numbers): fault-free and
+faulted; results.json holds both cases and their ratios.
+
+Writes DIR/results.json and the plots (fusion_error_vs_latency.png, fusion_trajectory_error.png,
+fusion_nees.png; with faults also fusion_offsets.png and fusion_drift.png).
+Run: `python -m sim.studies.fusion --out DIR` (or `toptag eval fusion`).
 """
 from __future__ import annotations
 
@@ -24,13 +37,14 @@ import argparse
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from sim.motion import ImuModel, Trajectory, bus_trajectory
-from sim.scene import rsu_mounts
+from sim.faults import RsuFault, describe, faults_from_options, seen_pose, turned
+from sim.motion import ImuModel, ImuSamples, Trajectory, bus_trajectory
+from sim.scene import rsu_camera, rsu_mounts
 from sim.studies import require_plotting
 from toptag.errors import InputError, SetupError, report
 from toptag.fix import Fix
@@ -38,9 +52,15 @@ from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.geometry import wrap_angle
 from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.progress import Progress
-from toptag.units import kmh_from_mps, ns_from_ms, ns_from_s, s_from_ns
+from toptag.units import NS_PER_MS, ns_from_ms, ns_from_s, s_from_ns
 
 DEFAULT_LATENCIES_MS = (0, 50, 100, 200, 300)
+ROUTES = ("left", "right", "straight", "stop")
+HEALTHY_CLOCK_BOUND_NS = NS_PER_MS  # a chrony-disciplined RSU on the intersection's LAN
+BUS_ROOF_Z = 3.0
+TRUST_HZ = 5.0  # how often the fused filter's per-RSU assessments are sampled
+OFFSET_TOLERANCE_MS = 3.0
+FLAG_WITHIN_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -69,12 +89,18 @@ class FixErrorModel:
 
 
 def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.random.Generator,
-                   fix_source=None) -> list[Fix]:
-    """Capture-stamped fixes from the first n_rsu corner RSUs (no arrival time yet)."""
+                   fix_source=None, faults: dict[str, RsuFault] | None = None) -> list[Fix]:
+    """Capture-stamped fixes from the first n_rsu corner RSUs (no arrival time yet). A fix is made at
+    each frame's exposure time; `faults` shift its stamp (clock offset + capture latency) and turn
+    its pose (drift). The same rng draws are made with or without faults (common random numbers)."""
     mounts = rsu_mounts()[:n_rsu]
+    faults = faults or {}
     fixes = []
     period = 1.0 / model.rate_hz
     for m in mounts:
+        fault = faults.get(m.id, RsuFault())
+        surveyed = rsu_camera(m.id.removeprefix("rsu-")) if fault.drift is not None else None
+        bound = HEALTHY_CLOCK_BOUND_NS if fault.clock_disciplined else None
         phase = rng.uniform(0.0, period)
         t = np.arange(phase, traj.duration, period)
         st = traj.state_at(t)
@@ -91,11 +117,29 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
             else:
                 C = model.covariance(bus, m.position[:2])
                 n = np.linalg.cholesky(C) @ rng.standard_normal(3)
-                pose = (st.x[i] + n[0], st.y[i] + n[1], wrap_angle(st.yaw[i] + n[2]))
-            fixes.append(Fix(traj.t_ns(t[i]), pose[0], pose[1], pose[2], C, m.id, seq))
+                seen = (st.x[i], st.y[i], st.yaw[i])
+                if fault.drift is not None:
+                    yaw, pitch = fault.drift.angles(float(t[i]))
+                    seen = seen_pose(surveyed, turned(surveyed, yaw, pitch), *seen, BUS_ROOF_Z)
+                pose = (seen[0] + n[0], seen[1] + n[1], wrap_angle(seen[2] + n[2]))
+            fixes.append(Fix(traj.t_ns(t[i]) + fault.time_offset_ns, pose[0], pose[1], pose[2], C, m.id, seq,
+                             clock_bound_ns=bound))
             seq += 1
     fixes.sort(key=lambda f: f.t_ns)
     return fixes
+
+
+@dataclass
+class RunInput:
+    """One Monte Carlo run's data, shared by every latency and case."""
+    traj: Trajectory
+    imu: ImuSamples
+    fixes: list[Fix]  # fault-free
+    faulted: list[Fix] | None  # the same frames with the faults (None without faults)
+
+    @property
+    def t0_ns(self) -> int:
+        return self.traj.t0_ns
 
 
 @dataclass
@@ -108,9 +152,16 @@ class RunTrace:
     dead: np.ndarray
     counters: dict
     delays_ms: np.ndarray
+    plain: np.ndarray | None = None  # offsets not estimated, no drift detection (faulted cases)
+    # the fused filter's view of each RSU, sampled at TRUST_HZ: times (s) and per RSU
+    trust_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    offsets: dict = field(default_factory=dict)  # rsu -> (n, 2) offset, sigma (s; NaN before its slot)
+    stats: dict = field(default_factory=dict)  # rsu -> (n,) drift statistic
+    flags: dict = field(default_factory=dict)  # rsu -> [s since start at which it was flagged]
+    final: dict = field(default_factory=dict)  # rsu -> RsuAssessment at the end
 
 
-def _feed(filters, imu_rows, arrivals, out_every: int, t_out_ns: list):
+def _feed(filters, imu_rows, arrivals, out_every: int, t_out_ns: list, on_output=None):
     """Drive filters with IMU rows and fix arrivals in time order; collect estimates every
     `out_every` IMU samples. `arrivals`: list per filter of (arrival_ns, fix) sorted by arrival."""
     outs = [[] for _ in filters]
@@ -127,6 +178,8 @@ def _feed(filters, imu_rows, arrivals, out_every: int, t_out_ns: list):
                 t_out_ns.append(t_ns)
             for j, f in enumerate(filters):
                 outs[j].append(f.estimate(t_ns))
+        if on_output is not None:
+            on_output(k, t_ns)
     return outs
 
 
@@ -140,32 +193,86 @@ def _pose_array(ests) -> tuple[np.ndarray, np.ndarray]:
     return xs, covs
 
 
-def run_once(traj: Trajectory, imu, fixes: list[Fix], latency_ms: float, jitter_ms: float,
-             rng: np.random.Generator, cfg: FilterConfig, dead: np.ndarray | None, out_hz: float = 50.0):
+class _TrustLog:
+    """Samples the fused filter's per-RSU assessments (offsets, drift statistics, flags)."""
+
+    def __init__(self, flt: BusFilter, t0_ns: int, every: int):
+        self.flt, self.t0_ns, self.every = flt, t0_ns, every
+        self.t: list[float] = []
+        self.rows: list[dict] = []
+        self.flags: dict[str, list[float]] = {}
+        self._since: dict[str, int | None] = {}
+
+    def __call__(self, k: int, t_ns: int) -> None:
+        if k % self.every or not self.flt.initialized:
+            return
+        a = self.flt.rsu_assessments()
+        self.t.append(s_from_ns(t_ns - self.t0_ns))
+        self.rows.append(a)
+        for rsu, v in a.items():
+            if v.flagged_since_ns is not None and v.flagged_since_ns != self._since.get(rsu):
+                self.flags.setdefault(rsu, []).append(s_from_ns(v.flagged_since_ns - self.t0_ns))
+            self._since[rsu] = v.flagged_since_ns
+
+    def series(self):
+        rsus = sorted({r for row in self.rows for r in row})
+        offsets = {r: np.full((len(self.rows), 2), np.nan) for r in rsus}
+        stats = {r: np.full(len(self.rows), np.nan) for r in rsus}
+        for i, row in enumerate(self.rows):
+            for r, v in row.items():
+                if v.offset_s is not None:
+                    offsets[r][i] = (v.offset_s, v.offset_sigma_s)
+                stats[r][i] = v.statistic
+        return np.asarray(self.t), offsets, stats
+
+
+def _arrivals(fixes: list[Fix], delays_ms: np.ndarray, faults: dict[str, RsuFault]) -> list[tuple[int, Fix]]:
+    """(arrival on the bus's clock, fix): a fix leaves the RSU when the frame has arrived (exposure +
+    capture latency = stamp - clock offset) and travels delay ms."""
+    out = []
+    for f, d in zip(fixes, delays_ms):
+        clock_ns = ns_from_ms(faults[f.source].clock_offset_ms) if f.source in faults else 0
+        out.append((f.t_ns - clock_ns + ns_from_ms(d), f))
+    return sorted(out, key=lambda a: a[0])
+
+
+def run_once(inp: RunInput, fixes: list[Fix], latency_ms: float, jitter_ms: float, rng: np.random.Generator,
+             cfg: FilterConfig, dead: np.ndarray | None, faults: dict[str, RsuFault] | None = None,
+             plain: bool = False, out_hz: float = 50.0) -> RunTrace:
+    traj, imu = inp.traj, inp.imu
+    faults = faults or {}
     delays = np.maximum(0.0, latency_ms + jitter_ms * rng.standard_normal(len(fixes)))
-    arrivals = sorted(((f.t_ns + ns_from_ms(d), f) for f, d in zip(fixes, delays)), key=lambda a: a[0])
+    arrivals = _arrivals(fixes, delays, faults)
     naive_arr = [(a, f.replace(t_ns=a)) for a, f in arrivals]
     fused = BusFilter(cfg)
-    naive = BusFilter(cfg.model_copy(update={"gate_probability": None}))
+    naive = BusFilter(cfg.model_copy(update={"gate_probability": None, "time_offsets": False,
+                                             "drift_detection": False}))
     filters, arr = [fused, naive], [arrivals, naive_arr]
+    if plain:
+        filters.append(BusFilter(cfg.model_copy(update={"time_offsets": False, "drift_detection": False})))
+        arr.append(arrivals)
     st0 = traj.state_at(0.0)
-    dr = None
     if dead is None:
         dr = BusFilter(cfg)
         dr.initialize(traj.t0_ns, st0.x, st0.y, st0.yaw, pos_sigma=0.01, yaw_sigma=math.radians(0.1),
                       speed=imu.wheel_speed[0], speed_sigma=0.1, trusted=True)
         filters.append(dr)
         arr.append([])
-    every = max(1, int(round(100.0 / out_hz)))
+    rate = 1.0 / float(np.median(np.diff(imu.t)))
+    every = max(1, int(round(rate / out_hz)))
+    trust = _TrustLog(fused, traj.t0_ns, max(1, int(round(rate / TRUST_HZ))))
     t_out: list[int] = []
-    outs = _feed(filters, imu.rows(), arr, every, t_out)
+    outs = _feed(filters, imu.rows(), arr, every, t_out, trust)
     t = traj.seconds(np.array(t_out))
     st = traj.state_at(t)
     truth = np.stack([st.x, st.y, st.yaw], axis=1)
     fx, fc = _pose_array(outs[0])
     nx, _ = _pose_array(outs[1])
-    dx = _pose_array(outs[2])[0] if dr is not None else dead
-    return RunTrace(t, truth, fx, fc, nx, dx, fused.counters(), delays)
+    px = _pose_array(outs[2])[0] if plain else None
+    dx = _pose_array(outs[-1])[0] if dead is None else dead
+    tt, offsets, stats = trust.series()
+    return RunTrace(t, truth, fx, fc, nx, dx, fused.counters(), delays, px, tt, offsets, stats, trust.flags,
+                    fused.rsu_assessments())
 
 
 def _errors(est: np.ndarray, truth: np.ndarray):
@@ -183,49 +290,78 @@ def _rms(v):
     return float(np.sqrt(np.mean(v * v))) if len(v) else float("nan")
 
 
+def _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, faults) -> list[RunInput]:
+    """Each run's route (cycling through `routes`), IMU and fixes (with and without faults, same noise)."""
+    ss = np.random.SeedSequence(seed)
+    out = []
+    for r, s in enumerate(ss.spawn(runs)):
+        traj = bus_trajectory(routes[r % len(routes)], "w", speed=speed, seed=seed)
+        g_imu, g_fix = [np.random.default_rng(x) for x in s.spawn(2)]
+        imu = imu_model.synthesize(traj, 0.0, traj.duration, g_imu)
+        state = g_fix.bit_generator.state
+        fixes = simulate_fixes(traj, fix_model, n_rsu, g_fix, fix_source)
+        faulted = None
+        if faults:
+            g_fix.bit_generator.state = state  # the same draws: only the faults differ
+            faulted = simulate_fixes(traj, fix_model, n_rsu, g_fix, fix_source, faults)
+        out.append(RunInput(traj, imu, fixes, faulted))
+    return out
+
+
 def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, seed: int = 0, runs: int = 16,
         n_rsu: int = 4, route: str = "left", speed: float = BUS_MAX_SPEED_MPS, settle_s: float = 1.5,
         imu_model: ImuModel | None = None, fix_model: FixErrorModel | None = None,
         config: FilterConfig | None = None, fix_source=None, plots: bool = True, log=print,
-        progress: bool = True) -> dict:
-    """The study. Returns the results dict also written to out_dir/results.json."""
+        progress: bool = True, faults: dict[str, RsuFault] | None = None) -> dict:
+    """The study. Returns the results dict also written to out_dir/results.json. `route`: one of
+    ROUTES, or several separated by commas (the runs drive them in turn)."""
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     imu_model = imu_model or ImuModel()
     fix_model = fix_model or FixErrorModel()
     cfg = config or FilterConfig()
-    traj = bus_trajectory(route, "w", speed=speed, seed=seed)
+    faults = dict(faults or {})
+    routes = [r.strip() for r in route.split(",") if r.strip()]
+    rsus = [m.id for m in rsu_mounts()[:n_rsu]]
+    unknown = sorted(set(faults) - set(rsus))
+    if unknown:
+        raise InputError(f"faults name RSUs the study does not have: {', '.join(unknown)} (RSUs: {', '.join(rsus)})")
     latencies = [float(l) for l in latencies_ms]
-    ss = np.random.SeedSequence(seed)
-    run_seeds = ss.spawn(runs)
-    per_lat: dict[float, list[RunTrace]] = {l: [] for l in latencies}
-    # Common random numbers: each run's IMU and fixes are shared by every latency.
-    inputs = []
-    for r in range(runs):
-        g_imu, g_fix, g_lat = [np.random.default_rng(s) for s in run_seeds[r].spawn(3)]
-        imu = imu_model.synthesize(traj, 0.0, traj.duration, g_imu)
-        fixes = simulate_fixes(traj, fix_model, n_rsu, g_fix, fix_source)
-        inputs.append((imu, fixes, g_lat))
+    inputs = _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, faults)
+    cases = [("fault_free", False)] + ([("faulted", True)] if faults else [])
+    per_case: dict[str, dict[float, list[RunTrace]]] = {c: {l: [] for l in latencies} for c, _ in cases}
     dead_cache: list[np.ndarray | None] = [None] * runs
     results: dict = {"latency_ms": {}}
-    bar = Progress(len(latencies) * runs, "toptag eval fusion") if progress else None
+    bar = Progress(len(latencies) * runs * len(cases), "toptag eval fusion") if progress else None
     for lat in latencies:
         t0 = time.perf_counter()
-        for r, (imu, fixes, g_lat) in enumerate(inputs):
-            rng = np.random.default_rng([seed, r, int(lat * 1000)])
-            tr = run_once(traj, imu, fixes, lat, jitter_ms, rng, cfg, dead_cache[r])
-            dead_cache[r] = tr.dead
-            per_lat[lat].append(tr)
-            if bar:
-                bar.update(note=f"{lat:g} ms")
-        res = _summarise(per_lat[lat], inputs, settle_s)
+        for name, faulted in cases:
+            for r, inp in enumerate(inputs):
+                rng = np.random.default_rng([seed, r, int(lat * 1000)])  # same delays in both cases
+                tr = run_once(inp, inp.faulted if faulted else inp.fixes, lat, jitter_ms, rng, cfg, dead_cache[r],
+                              faults if faulted else None, plain=faulted)
+                dead_cache[r] = tr.dead
+                per_case[name][lat].append(tr)
+                if bar:
+                    bar.update(note=f"{lat:g} ms {name.replace('_', '-')}")
+        res = _summarise(per_case["fault_free"][lat], inputs, settle_s, {})
         results["latency_ms"][_key(lat)] = res
-        log(f"latency {lat:5.0f} ms  jitter {jitter_ms:.0f} ms  runs {runs}: "
-            f"fused {res['fused_pos_rms_m'] * 100:6.2f} cm  naive {res['naive_pos_rms_m'] * 100:7.2f} cm  "
-            f"dead-reckoning {res['dead_reckoning_pos_rms_m'] * 100:7.2f} cm"
-            f"  NEES {res['nees_mean']:.2f} (band {res['nees_band_95'][0]:.2f}-{res['nees_band_95'][1]:.2f})"
-            f"  [{time.perf_counter() - t0:.1f} s]")
+        line = (f"latency {lat:5.0f} ms  jitter {jitter_ms:.0f} ms  runs {runs}: "
+                f"fused {res['fused_pos_rms_m'] * 100:6.2f} cm  naive {res['naive_pos_rms_m'] * 100:7.2f} cm  "
+                f"dead-reckoning {res['dead_reckoning_pos_rms_m'] * 100:7.2f} cm"
+                f"  NEES {res['nees_mean']:.2f} (band {res['nees_band_95'][0]:.2f}-{res['nees_band_95'][1]:.2f})")
+        if faults:
+            fr = _summarise(per_case["faulted"][lat], inputs, settle_s, faults)
+            fr["fused_over_fault_free"] = fr["fused_pos_rms_m"] / res["fused_pos_rms_m"]
+            fr["plain_over_fault_free"] = fr["plain_pos_rms_m"] / res["fused_pos_rms_m"]
+            results.setdefault("faulted", {"faults": {k: v.model_dump() for k, v in faults.items()},
+                                           "description": describe(faults), "latency_ms": {}})
+            results["faulted"]["latency_ms"][_key(lat)] = fr
+            line += (f"\n   faulted ({describe(faults)}): fused {fr['fused_pos_rms_m'] * 100:.2f} cm "
+                     f"({fr['fused_over_fault_free']:.2f}x fault-free), offsets not estimated "
+                     f"{fr['plain_pos_rms_m'] * 100:.2f} cm; false flags {fr['false_flags']}")
+        log(line + f"  [{time.perf_counter() - t0:.1f} s]")
     if bar:
         bar.close()
     zero = results["latency_ms"].get(_key(min(latencies)))
@@ -241,19 +377,27 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
             "nees_mean_in_band_all_latencies": all(
                 v["nees_band_95"][0] <= v["nees_mean"] <= v["nees_band_95"][1] for v in results["latency_ms"].values()),
         }
+    if faults:
+        results["time_and_trust"] = _verdicts(results, faults)
+    data_s = sum(inp.traj.duration for inp in inputs)
     results["setup"] = {
-        "route": traj.name, "speed_mps": speed, "duration_s": traj.duration, "runs": runs, "seed": seed,
-        "jitter_ms": jitter_ms, "delay_model": "max(0, latency + N(0, jitter))", "n_rsu": n_rsu,
-        "rsus": [m.id for m in rsu_mounts()[:n_rsu]], "settle_s": settle_s, "output_hz": 50,
+        "routes": routes, "route": routes[0], "speed_mps": speed, "durations_s": [inp.traj.duration for inp in inputs],
+        "duration_s": inputs[0].traj.duration, "data_s_per_latency": data_s, "runs": runs, "seed": seed,
+        "jitter_ms": jitter_ms, "delay_model": "max(0, latency + N(0, jitter))", "n_rsu": n_rsu, "rsus": rsus,
+        "settle_s": settle_s, "output_hz": 50,
         "fix_model": "live (fix_source)" if fix_source else asdict(fix_model), "imu_model": asdict(imu_model),
+        "healthy_clock_bound_ns": HEALTHY_CLOCK_BOUND_NS, "faults": describe(faults),
         "filter": cfg.model_dump(),
+        "plain": "the same filter with time offsets taken as zero and no drift detection",
         "naive": "same EKF, each fix applied at its arrival time as if current, no gate",
         "dead_reckoning": "same EKF from the true initial pose, IMU/odometry only",
         "nees": "3-dof (x, y, yaw); band = 95% chi-square band of the run-averaged NEES at one time",
     }
     results["runtime_s"] = time.perf_counter() - t_start
     if plots:
-        results["figures"] = _plots(out, traj, per_lat, results, settle_s, inputs)
+        from sim.studies.fusion_plots import plots as make_plots
+
+        results["figures"] = make_plots(out, per_case, results, settle_s, inputs, faults)
     (out / "results.json").write_text(json.dumps(results, indent=2, default=_json_default))
     results["runtime_s"] = time.perf_counter() - t_start
     return results
@@ -271,12 +415,13 @@ def _json_default(o):
     return str(o)
 
 
-def _eval_mask(tr: RunTrace, fixes: list[Fix], t0_ns: int, settle_s: float) -> np.ndarray:
-    first = s_from_ns(fixes[0].t_ns - t0_ns) if fixes else 0.0
+def eval_mask(tr: RunTrace, inp: RunInput, settle_s: float) -> np.ndarray:
+    """Output times evaluated: from `settle_s` after the first fix's capture."""
+    first = s_from_ns(inp.fixes[0].t_ns - inp.t0_ns) if inp.fixes else 0.0
     return tr.t >= first + settle_s
 
 
-def _nees(tr: RunTrace) -> np.ndarray:
+def nees_series(tr: RunTrace) -> np.ndarray:
     e = _errors(tr.fused, tr.truth)
     out = np.full(len(e), np.nan)
     for i in range(len(e)):
@@ -285,23 +430,24 @@ def _nees(tr: RunTrace) -> np.ndarray:
     return out
 
 
-def _summarise(traces: list[RunTrace], inputs, settle_s: float) -> dict:
+def _summarise(traces: list[RunTrace], inputs: list[RunInput], settle_s: float, faults: dict[str, RsuFault]) -> dict:
     from scipy.stats import chi2
 
-    t0_ns = None
-    fpos, npos, dpos, fyaw, nyaw, nees_rows = [], [], [], [], [], []
+    fpos, npos, dpos, ppos, fyaw, nyaw, nees_rows = [], [], [], [], [], [], []
     counters: dict[str, int] = {}
     delays = []
-    for tr, (imu, fixes, _) in zip(traces, inputs):
-        t0_ns = int(imu.t_ns[0]) - ns_from_s(imu.t[0])
-        m = _eval_mask(tr, fixes, t0_ns, settle_s)
+    for tr, inp in zip(traces, inputs):
+        m = eval_mask(tr, inp, settle_s)
         ef, en, ed = (_errors(a, tr.truth)[m] for a in (tr.fused, tr.naive, tr.dead))
         fpos.append(np.hypot(ef[:, 0], ef[:, 1]))
         npos.append(np.hypot(en[:, 0], en[:, 1]))
         dpos.append(np.hypot(ed[:, 0], ed[:, 1]))
+        if tr.plain is not None:
+            ep = _errors(tr.plain, tr.truth)[m]
+            ppos.append(np.hypot(ep[:, 0], ep[:, 1]))
         fyaw.append(ef[:, 2])
         nyaw.append(en[:, 2])
-        nees_rows.append(_nees(tr)[m])
+        nees_rows.append(nees_series(tr)[m])
         delays.append(tr.delays_ms)
         for k, v in tr.counters.items():
             if isinstance(v, int):
@@ -312,135 +458,107 @@ def _summarise(traces: list[RunTrace], inputs, settle_s: float) -> dict:
     avg = np.nanmean(N, axis=0)
     band = (float(chi2.ppf(0.025, 3 * M) / M), float(chi2.ppf(0.975, 3 * M) / M))
     fp = np.concatenate(fpos)
-    return {
+    out = {
         "fused_pos_rms_m": _rms(fp),
         "naive_pos_rms_m": _rms(np.concatenate(npos)),
         "dead_reckoning_pos_rms_m": _rms(np.concatenate(dpos)),
         "fused_pos_max_m": float(np.nanmax(fp)),
         "fused_yaw_rms_deg": math.degrees(_rms(np.concatenate(fyaw))),
         "naive_yaw_rms_deg": math.degrees(_rms(np.concatenate(nyaw))),
-        "nees_mean": float(np.nanmean(N)),
+        "nees_mean": float(np.nanmean(np.concatenate(nees_rows))),
         "nees_band_95": band,
         "nees_frac_times_in_band": float(np.mean((avg >= band[0]) & (avg <= band[1]))),
         "nees_dof": 3,
         "n_samples": int(np.isfinite(fp).sum()),
         "delay_ms_mean": float(np.mean(np.concatenate(delays))),
         "fixes": {k: counters.get(k, 0) for k in ("fixes", "accepted", "rejected_gate", "reacquired", "initialized",
-                                                  "before_start", "too_old", "duplicate", "pending")},
+                                                  "before_start", "too_old", "future", "duplicate", "pending",
+                                                  "refused_flagged", "from_flagged_rsu", "unknown_clock")},
     }
+    if ppos:
+        out["plain_pos_rms_m"] = _rms(np.concatenate(ppos))
+    out.update(_trust_summary(traces, inputs, faults))
+    return out
 
 
-def _plots(out: Path, traj: Trajectory, per_lat, results, settle_s, inputs) -> list[str]:
-    import matplotlib
+def _in_view_s(inp: RunInput, rsu: str, after_s: float) -> float | None:
+    """First exposure time (s) >= after_s of a fix of `rsu` (the bus in its view), None if none."""
+    for f in inp.fixes:
+        if f.source == rsu:
+            t = s_from_ns(f.t_ns - inp.t0_ns)
+            if t >= after_s:
+                return t
+    return None
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
 
-    from sim.scene import ROAD_HALF_WIDTH
+def _trust_summary(traces: list[RunTrace], inputs: list[RunInput], faults: dict[str, RsuFault]) -> dict:
+    """Per RSU: the final offset estimates against the injected offset, drift flags and when they came,
+    false flags (RSUs flagged without an injected drift)."""
+    rsus = sorted({r for tr in traces for r in tr.final} | set(faults))
+    offsets, flagged = {}, {}
+    false_flags = false_flag_runs = 0
+    for rsu in rsus:
+        fault = faults.get(rsu, RsuFault())
+        injected_ms = fault.time_offset_ns / NS_PER_MS
+        finals = [(1e3 * a.offset_s, 1e3 * a.offset_sigma_s) for tr in traces
+                  if (a := tr.final.get(rsu)) is not None and a.offset_s is not None]
+        if finals:
+            est = np.array(finals)
+            err = est[:, 0] - injected_ms
+            offsets[rsu] = {"injected_ms": injected_ms, "final_ms_mean": float(est[:, 0].mean()),
+                            "sigma_ms_mean": float(est[:, 1].mean()), "error_ms_rms": float(np.sqrt(np.mean(err ** 2))),
+                            "error_ms_max": float(np.max(np.abs(err))),
+                            "within_3ms": float(np.mean(np.abs(err) <= OFFSET_TOLERANCE_MS)),
+                            "error_within_2_sigma": float(np.mean(np.abs(err) <= 2 * est[:, 1])),
+                            "runs": len(finals), "final_ms": est[:, 0].tolist(), "sigma_ms": est[:, 1].tolist()}
+        drift = fault.drift
+        times = [tr.flags.get(rsu, []) for tr in traces]
+        entry = {"injected": drift is not None, "runs_flagged": int(sum(bool(t) for t in times)),
+                 "runs": len(traces), "flag_times_s": [t[0] if t else None for t in times]}
+        if drift is not None:
+            delays = []
+            for t, inp in zip(times, inputs):
+                view = _in_view_s(inp, rsu, drift.at_s)
+                if view is None:
+                    delays.append(None)
+                    continue
+                start = max(drift.at_s, view)
+                later = [x for x in t if x >= drift.at_s - 1e-9]
+                delays.append(later[0] - start if later else None)
+            seen = [d for d in delays if d is not None]
+            entry.update({"delay_after_in_view_s": delays,
+                          "delay_s_median": float(np.median(seen)) if seen else None,
+                          "delay_s_max": float(np.max(seen)) if seen else None,
+                          "flagged_within_10s": float(np.mean([d is not None and d <= FLAG_WITHIN_S
+                                                              for d, inp in zip(delays, inputs)]))})
+        else:
+            false_flags += int(sum(len(t) for t in times))
+            false_flag_runs += int(sum(bool(t) for t in times))
+        flagged[rsu] = entry
+    hours = sum(inp.traj.duration for inp in inputs) / 3600.0
+    return {"offset_estimate_ms": offsets, "drift_flagged": flagged, "false_flags": false_flags,
+            "false_flag_runs": false_flag_runs, "false_flags_per_hour": false_flags / hours if hours else None,
+            "hours_of_data": hours}
 
-    files = []
-    lats = sorted(per_lat)
-    R = results["latency_ms"]
-    # 1. error against latency
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for key, lab, mk in (("fused_pos_rms_m", "fused (applied at capture time)", "o-"),
-                         ("naive_pos_rms_m", "naive (applied on arrival)", "s-"),
-                         ("dead_reckoning_pos_rms_m", "dead reckoning", "^--")):
-        ax.plot(lats, [R[_key(l)][key] * 100 for l in lats], mk, label=lab)
-    z = R[_key(lats[0])]["fused_pos_rms_m"] * 100
-    ax.axhline(1.2 * z, color="gray", ls=":", label=f"1.2 x fused at {lats[0]:.0f} ms")
-    ax.set_yscale("log")
-    ax.set_xlabel("mean fix latency [ms]")
-    ax.set_ylabel("position RMS error [cm]")
-    setup = results["setup"]
-    ax.set_title(f"{setup['route']} at {kmh_from_mps(setup['speed_mps']):.0f} km/h, {setup['n_rsu']} RSUs x 10 Hz, "
-                 f"jitter {setup['jitter_ms']:.0f} ms, {setup['runs']} runs", fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    p = out / "fusion_error_vs_latency.png"
-    fig.savefig(p, dpi=120)
-    plt.close(fig)
-    files.append(p.name)
-    # 2. trajectory coloured by error (first run, latency 200 ms or the largest)
-    lat = 200.0 if 200.0 in per_lat else lats[-1]
-    tr = per_lat[lat][0]
-    imu0, fixes0, _ = inputs[0]
-    win = _eval_mask(tr, fixes0, int(imu0.t_ns[0]) - ns_from_s(imu0.t[0]), settle_s)
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.5), sharex=True, sharey=True)
-    errs = {name: np.hypot(*(_errors(arr, tr.truth)[:, :2].T))
-            for name, arr in (("fused", tr.fused), ("naive", tr.naive))}
-    vmax = max(np.nanpercentile(errs["naive"], 99), 0.05) * 100
-    for axx, (name, arr) in zip(axes, (("fused", tr.fused), ("naive", tr.naive))):
-        e = errs[name] * 100
-        pts = arr[:, :2]
-        ok = np.all(np.isfinite(pts), axis=1)
-        segs = np.stack([pts[:-1], pts[1:]], axis=1)[ok[:-1] & ok[1:]]
-        lc = LineCollection(segs, cmap="viridis", norm=matplotlib.colors.LogNorm(vmin=0.3, vmax=max(vmax, 1.0)))
-        lc.set_array(e[:-1][ok[:-1] & ok[1:]])
-        lc.set_linewidth(3)
-        axx.add_collection(lc)
-        axx.plot(tr.truth[:, 0], tr.truth[:, 1], "k--", lw=0.6, label="truth")
-        for m in rsu_mounts()[:setup["n_rsu"]]:
-            axx.plot(*m.position[:2], "r^")
-            axx.add_patch(plt.Circle(m.position[:2], 22.0, fill=False, ls=":", color="r", alpha=0.3))
-        h = ROAD_HALF_WIDTH
-        for s in (-1, 1):
-            axx.plot([-45, -h], [s * h, s * h], "gray", lw=0.5)
-            axx.plot([h, 45], [s * h, s * h], "gray", lw=0.5)
-            axx.plot([s * h, s * h], [-45, -h], "gray", lw=0.5)
-            axx.plot([s * h, s * h], [h, 45], "gray", lw=0.5)
-        axx.set_aspect("equal")
-        axx.set_xlim(-45, 45)
-        axx.set_ylim(-45, 45)
-        i0 = int(np.argmax(win))
-        axx.plot(*arr[i0, :2], "ko", ms=5, mfc="none", label="evaluation starts")
-        axx.set_title(f"{name}, latency {lat:.0f} ms (run 1): RMS {_rms(errs[name][win]) * 100:.1f} cm "
-                      f"(evaluated), {_rms(errs[name]) * 100:.1f} cm incl. start-up", fontsize=9)
-        axx.legend(loc="lower right", fontsize=7)
-        axx.set_xlabel("x east [m]")
-        fig.colorbar(lc, ax=axx, label="position error [cm]", shrink=0.8)
-    axes[0].set_ylabel("y north [m]")
-    fig.tight_layout()
-    p = out / "fusion_trajectory_error.png"
-    fig.savefig(p, dpi=120)
-    plt.close(fig)
-    files.append(p.name)
-    # 3. NEES consistency
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"width_ratios": [2, 1]})
-    for l in lats:
-        rows = []
-        for tr, (imu, fixes, _) in zip(per_lat[l], inputs):
-            t0_ns = int(imu.t_ns[0]) - ns_from_s(imu.t[0])
-            m = _eval_mask(tr, fixes, t0_ns, settle_s)
-            rows.append((tr.t[m], _nees(tr)[m]))
-        n = min(len(r[1]) for r in rows)
-        a1.plot(rows[0][0][:n], np.nanmean([r[1][:n] for r in rows], axis=0), lw=0.8, label=f"{l:.0f} ms")
-    band = R[_key(lats[0])]["nees_band_95"]
-    a1.axhspan(*band, color="green", alpha=0.15, label="95% band (run average)")
-    a1.axhline(3.0, color="k", lw=0.8)
-    a1.set_xlabel("time [s]")
-    a1.set_ylabel(f"NEES (x, y, yaw), mean over {setup['runs']} runs")
-    a1.set_yscale("log")
-    a1.legend(fontsize=7, ncol=3)
-    means = [R[_key(l)]["nees_mean"] for l in lats]
-    a2.axhspan(*band, color="green", alpha=0.15, label="95% chi-square band")
-    a2.axhline(3.0, color="k", lw=0.8, label="expected (3 dof)")
-    a2.plot(lats, means, "o-", color="C0", label="mean NEES (all runs, all times)")
-    for l, m in zip(lats, means):
-        a2.annotate(f"{m:.2f}", (l, m), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=7)
-    a2.set_ylim(0, max(band[1] * 1.15, max(means) * 1.2))
-    a2.set_xlabel("latency [ms]")
-    a2.set_ylabel("mean NEES")
-    a2.legend(fontsize=7, loc="lower right")
-    fig.suptitle("filter consistency: NEES of the fused pose against its covariance", fontsize=10)
-    fig.tight_layout()
-    p = out / "fusion_nees.png"
-    fig.savefig(p, dpi=120)
-    plt.close(fig)
-    files.append(p.name)
-    return files
+
+def _verdicts(results: dict, faults: dict[str, RsuFault]) -> dict:
+    """The issue's figures per latency: RMS ratio, offsets within 3 ms, drift flagged within 10 s."""
+    out = {}
+    offset_rsus = [r for r, f in faults.items() if f.time_offset_ns]
+    drift_rsus = [r for r, f in faults.items() if f.drift is not None]
+    for k, fr in results["faulted"]["latency_ms"].items():
+        v = {"fused_over_fault_free": fr["fused_over_fault_free"],
+             "plain_over_fault_free": fr["plain_over_fault_free"], "false_flags": fr["false_flags"]}
+        if offset_rsus:
+            v["offsets_within_3ms_every_run"] = all(fr["offset_estimate_ms"].get(r, {}).get("within_3ms", 0) == 1.0
+                                                    for r in fr["offset_estimate_ms"])
+            v["fused_le_1p2x_fault_free"] = bool(fr["fused_over_fault_free"] <= 1.2)
+        if drift_rsus:
+            v["drift_flagged_within_10s_every_run"] = all(
+                fr["drift_flagged"][r].get("flagged_within_10s", 0) == 1.0 for r in drift_rsus)
+            v["fused_le_1p3x_fault_free"] = bool(fr["fused_over_fault_free"] <= 1.3)
+        out[k] = v
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -452,7 +570,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--runs", type=int, default=16, help="Monte Carlo runs per latency (default 16)")
     p.add_argument("--rsus", type=int, default=4, choices=(1, 2, 3, 4), help="number of corner RSUs (default 4)")
-    p.add_argument("--route", default="left", choices=("left", "right", "straight", "stop"))
+    p.add_argument("--route", default="left",
+                   help=f"route, or routes separated by commas that the runs drive in turn ({', '.join(ROUTES)}; "
+                        "default left)")
+    p.add_argument("--clock-offset-ms", default=None, metavar="RSU=MS[,RSU=MS]",
+                   help="RSU clocks that are off (and undisciplined), e.g. rsu-se=30")
+    p.add_argument("--capture-latency-ms", default=None, metavar="RSU=MS[,RSU=MS]",
+                   help="unmodelled capture latencies (frames stamped on arrival), e.g. rsu-ne=40")
+    p.add_argument("--drift-deg", default=None, metavar="RSU=DEG[@T[/RAMP]]",
+                   help="camera turns: DEG about the vertical at T s (a step) or over RAMP s from T, e.g. rsu-se=0.2@3")
+    p.add_argument("--flagged", choices=("downweight", "refuse"), default=None,
+                   help="what the filter does with a flagged RSU's fixes (default: the filter's, downweight)")
     p.add_argument("--fixes", default="study", choices=("study", "live"),
                    help="fix error model: the study's (default) or the live pipeline")
     p.add_argument("--no-plots", action="store_true")
@@ -475,7 +603,17 @@ def main(argv: list[str] | None = None) -> int:
                                                 f"got {a.latency_ms!r}"))
     if not lats or min(lats) < 0:
         return report("eval fusion", InputError("latencies must be >= 0"))
-    res = run(a.out, lats, a.jitter_ms, a.seed, runs=a.runs, n_rsu=a.rsus, route=a.route, plots=not a.no_plots)
+    bad = [r for r in a.route.split(",") if r.strip() not in ROUTES]
+    if bad or not a.route.strip():
+        return report("eval fusion", InputError(f"--route: unknown route(s) {', '.join(bad) or '(none)'} "
+                                                f"(one or more of {', '.join(ROUTES)})"))
+    try:
+        faults = faults_from_options(a.clock_offset_ms, a.capture_latency_ms, a.drift_deg)
+        cfg = FilterConfig() if a.flagged is None else FilterConfig(flagged_policy=a.flagged)
+        res = run(a.out, lats, a.jitter_ms, a.seed, runs=a.runs, n_rsu=a.rsus, route=a.route, plots=not a.no_plots,
+                  faults=faults, config=cfg)
+    except InputError as e:
+        return report("eval fusion", e)
     print()
     print(f"{'latency':>8} {'fused cm':>9} {'naive cm':>9} {'DR cm':>8} {'fused/0':>8} {'naive/fused':>11}"
           f" {'NEES':>6} {'band':>12} {'rejected':>8}")
@@ -491,9 +629,38 @@ def main(argv: list[str] | None = None) -> int:
               f"{z['fused_pos_rms_m'] * 100:.2f} cm (ratio {r['fused_ratio_to_min_latency']:.2f}, target <= 1.2: "
               f"{'met' if ok else 'NOT met'}); naive {r['naive_pos_rms_m'] * 100:.1f} cm "
               f"({r['naive_over_fused']:.0f}x fused)")
+    fault_free_flags = sum(r["false_flags"] for r in res["latency_ms"].values())
+    hours = sum(r["hours_of_data"] for r in res["latency_ms"].values())
+    print(f"\nfault-free: {fault_free_flags} drift flags in {hours * 60:.1f} min of data")
+    if faults:
+        _print_faulted(res)
     print(f"wrote {Path(a.out) / 'results.json'} and {', '.join(res.get('figures', []))}; "
           f"runtime {res['runtime_s']:.1f} s")
     return 0
+
+
+def _print_faulted(res: dict) -> None:
+    f = res["faulted"]
+    print(f"faulted: {f['description']}")
+    for k, r in f["latency_ms"].items():
+        print(f"  {k:>4} ms: fused {r['fused_pos_rms_m'] * 100:.2f} cm = {r['fused_over_fault_free']:.2f}x fault-free "
+              f"(offsets not estimated: {r['plain_over_fault_free']:.2f}x); false flags {r['false_flags']}")
+        for rsu, o in r["offset_estimate_ms"].items():
+            print(f"     {rsu}: offset {o['final_ms_mean']:6.1f} ± {o['sigma_ms_mean']:.1f} ms (injected "
+                  f"{o['injected_ms']:g}; |error| max {o['error_ms_max']:.1f} ms, within 3 ms in "
+                  f"{100 * o['within_3ms']:.0f} % of runs)")
+        for rsu, d in r["drift_flagged"].items():
+            if d["injected"] or d["runs_flagged"]:
+                when = "" if not d["injected"] else (f"; after the bus came into view: median "
+                                                     f"{_fmt(d['delay_s_median'])} s, max {_fmt(d['delay_s_max'])} s")
+                print(f"     {rsu}: drift {'injected' if d['injected'] else 'NOT injected'}, flagged in "
+                      f"{d['runs_flagged']}/{d['runs']} runs{when}")
+    for k, v in res["time_and_trust"].items():
+        print(f"  {k} ms verdicts: {v}")
+
+
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:.1f}"
 
 
 if __name__ == "__main__":

@@ -26,6 +26,21 @@ has been accepted for `reacquire_after_s`, a rejected fix is applied (with the p
 inflated by its innovation) only if at least `reacquire_min_fixes` recent rejected fixes from at least
 `reacquire_min_sources` RSUs agree with it.
 
+Time offsets (toptag.fusion.offsets): each RSU's time offset (its clock's offset from the bus's plus
+the capture latency it does not know of) is a state of the filter, one slot per RSU, added when its
+first fix is processed (prior 0 with `offset_sigma0_ms`, or `offset_sigma0_unknown_clock_ms` when the
+fix's clock came without a bound; a random walk of `offset_walk_ms` per sqrt(s)). A fix stamped t is
+predicted as the pose at t - offset; through that model the offset's uncertainty widens the RSU's
+innovation covariance by the motion it implies (speed x sigma along the track, yaw rate x sigma in
+yaw) and every fix refines the offset. At most `max_offset_slots` RSUs hold a slot; the one heard
+from least recently gives its slot up (its estimate is remembered and seeds it when it returns).
+
+Trust (toptag.fusion.trust): every RSU's innovations feed a drift detector that flags an RSU whose
+fixes disagree persistently with the other RSUs and the filter (a turned camera, a moved pole);
+while flagged its fixes are down-weighted or refused (`flagged_policy`). Offsets, flags and
+disagreements are part of each buffered step, so they too are re-derived on re-propagation.
+`rsu_assessments()` reports them per RSU.
+
 Start-up: `initialize(...)` from a coarse prior (then fixes are gated against the full prior and the
 first one is applied once `acquire_min_fixes` agree), or automatically from the first confident fix
 (pose sigma <= `init_max_pos_sigma`). IMU samples received before start-up are kept and replayed.
@@ -34,12 +49,14 @@ from __future__ import annotations
 
 import math
 from bisect import bisect_left, bisect_right
-from typing import NamedTuple
+from types import MappingProxyType
+from typing import Literal, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from toptag.fix import Fix
+from toptag.fusion.offsets import motion_rate, pose_before
 from toptag.fusion.outcomes import FixOutcome, FixRecord, count_outcomes
 from toptag.fusion.state import (
     STATE_DIM,
@@ -53,16 +70,26 @@ from toptag.fusion.state import (
     FusedState,
     Health,
 )
+from toptag.fusion.trust import DriftRule, RsuAssessment, RsuRecord
 from toptag.geometry import wrap_angle
-from toptag.units import ns_from_s, s_from_ns
+from toptag.units import NS_PER_MS, ns_from_s, s_from_ns
 
 ACQUIRING, TRACKING = 1, 2
 _MODE_NAMES = {ACQUIRING: "acquiring", TRACKING: "tracking"}
-_EYE = np.eye(STATE_DIM)
+_EYES: dict[int, np.ndarray] = {}
+_NO_RSUS = MappingProxyType({})
+
+
+def _eye(n: int) -> np.ndarray:
+    e = _EYES.get(n)
+    if e is None:
+        e = _EYES[n] = np.eye(n)
+    return e
 
 # chi-square quantiles, 3 dof (avoid importing scipy in the service)
-_CHI2_3 = {0.95: 7.814727903251178, 0.99: 11.344866730144373, 0.995: 12.838156466598647,
-           0.999: 16.26623619623813, 0.9999: 21.10751340254392}
+_CHI2_3 = {0.5: 2.3659738843753377, 0.9: 6.251388631170325, 0.95: 7.814727903251178,
+           0.99: 11.344866730144373, 0.995: 12.838156466598647, 0.999: 16.26623619623813,
+           0.9999: 21.10751340254392, 0.99999: 25.90174974567149, 0.999999: 30.66484970615427}
 
 
 def chi2_3dof(p: float) -> float:
@@ -112,6 +139,24 @@ class FilterConfig(BaseModel):
     init_max_yaw_sigma: float = math.radians(10.0)
     # admission
     max_future_s: float = 0.5  # a fix stamped later than newest IMU + this is refused
+    # time offsets (toptag.fusion.offsets): one state per RSU
+    time_offsets: bool = True  # False: fixes are taken at their stamps (offsets assumed zero)
+    offset_sigma0_ms: float = Field(default=5.0, gt=0)  # prior: unmodelled capture latency (clock bound added)
+    offset_sigma0_unknown_clock_ms: float = Field(default=50.0, gt=0)  # prior when the clock has no bound
+    offset_walk_ms: float = Field(default=0.1, ge=0)  # ms/sqrt(s): clock wander, latency drift
+    max_offset_slots: int = Field(default=8, ge=1)
+    # drift detection (toptag.fusion.trust)
+    drift_detection: bool = True
+    drift_window_s: float = Field(default=5.0, gt=0)  # time constant of the detector's forgetting
+    drift_false_alarm: float = Field(default=1e-5, gt=0, lt=0.5)  # per test, chi-square 3 dof
+    drift_clear_probability: float = Field(default=0.9, gt=0, lt=1)
+    drift_min_pos_m: float = Field(default=0.03, ge=0)  # a smaller bias is calibration error, not drift
+    drift_min_yaw_deg: float = Field(default=0.1, ge=0)
+    drift_isolation_ratio: float = Field(default=2.0, ge=1)
+    drift_min_fixes: float = Field(default=10.0, ge=1)  # effective number of fixes before a flag
+    drift_max_offset_sigma_ms: float = Field(default=10.0, gt=0)  # no flag while the RSU's offset is this uncertain
+    flagged_policy: Literal["downweight", "refuse"] = "downweight"
+    flagged_cov_scale: float = Field(default=4.0, ge=1)  # downweight: R -> scale * (R + bias bias^T)
     # health
     degraded_after_s: float = 1.0
     degraded_pos_sigma: float = 0.5
@@ -139,6 +184,8 @@ class _Gate(NamedTuple):
     cands: tuple  # refused fixes kept for consensus
     last_delay_ns: int | None = None  # arrival - capture of the last applied fix
     last_source: str | None = None
+    clocks: tuple = ()  # RSUs holding a time-offset slot, in state order (index STATE_DIM + i)
+    rsus: MappingProxyType | dict = _NO_RSUS  # RSU id -> toptag.fusion.trust.RsuRecord (copy-on-write)
 
 
 class _Step:
@@ -158,11 +205,24 @@ class BusFilter:
     estimate(t_ns=None) -> FusedState | None           (None before start-up)
     counters() -> dict                                (final outcome counts, totals and per source)
     fix_outcomes() -> list[(key, FixOutcome, d2)]      (fixes still in the buffer)
+    rsu_assessments() -> dict[rsu, RsuAssessment]      (time offset, drift flag, disagreement, counts)
+    memory() -> dict[rsu, RsuRecord]                   (what a new filter may start from: BusFilter(memory=))
     """
 
-    def __init__(self, config: FilterConfig | None = None):
+    def __init__(self, config: FilterConfig | None = None, memory: dict[str, RsuRecord] | None = None):
         self.cfg = config or FilterConfig()
         c = self.cfg
+        self._offsets = c.time_offsets
+        self._var0_known = (c.offset_sigma0_ms * 1e-3) ** 2
+        self._var0_unknown = (c.offset_sigma0_unknown_clock_ms * 1e-3) ** 2
+        self._q_d = (c.offset_walk_ms * 1e-3) ** 2
+        self._drift = DriftRule(c.drift_window_s, chi2_3dof(1.0 - c.drift_false_alarm),
+                                chi2_3dof(c.drift_clear_probability), c.drift_min_pos_m,
+                                math.radians(c.drift_min_yaw_deg), c.drift_isolation_ratio, chi2_3dof(0.99),
+                                c.drift_min_fixes, c.drift_max_offset_sigma_ms * 1e-3) \
+            if c.drift_detection else None
+        # RSUs remembered from a previous filter (their offsets and flags), in the start-up step.
+        self._memory = MappingProxyType(dict(memory)) if memory else _NO_RSUS
         self._gate_thr = c.gate_threshold
         self._buffer_ns = ns_from_s(c.buffer_s)
         self._q_pos = c.pos_noise_density ** 2
@@ -187,6 +247,9 @@ class BusFilter:
         self._start_ns: int | None = None
         self._archived: dict[str, int] = count_outcomes([])
         self._archived_src: dict[str, dict[str, int]] = {}
+        self._archived_flagged = 0
+        self._unknown_clock = 0
+        self._unknown_clock_src: dict[str, int] = {}
         self._imu_rejected = 0
         self._imu_count = 0
         self._last_rx_delay_ns: int | None = None
@@ -265,6 +328,9 @@ class BusFilter:
         arrival = arrival_ns if arrival_ns is not None else fix.arrival_ns
         if arrival is None:
             arrival = self._last_imu_t
+        if fix.clock_bound_ns is None:
+            self._unknown_clock += 1
+            self._unknown_clock_src[fix.source] = self._unknown_clock_src.get(fix.source, 0) + 1
         if fix.problem() is not None:
             return self._count_now(fix, FixOutcome.INVALID)
         if arrival is not None:
@@ -330,6 +396,8 @@ class BusFilter:
             d[r.outcome.value] += 1
         total["fixes"] = sum(total[o.value] for o in FixOutcome)
         total["applied"] = sum(total[o.value] for o in FixOutcome if o.applied)
+        total["from_flagged_rsu"] = self._archived_flagged + sum(r.flagged for r in self._fix_recs)
+        total["unknown_clock"] = self._unknown_clock
         total["imu_samples"] = self._imu_count
         total["imu_rejected"] = self._imu_rejected
         total["per_source"] = {s: {k: v for k, v in d.items() if v} for s, d in sorted(per_src.items())}
@@ -347,12 +415,16 @@ class BusFilter:
         if not c.init_from_fix or max(sd[0], sd[1]) > c.init_max_pos_sigma or sd[2] > c.init_max_yaw_sigma:
             return self._count_now(fix, FixOutcome.NOT_INITIALIZED)
         delay = None if arrival is None else int(arrival) - fix.t_ns
-        self._start(fix.t_ns, fix.pose, fix.cov, _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source), None, None)
+        self._start(fix.t_ns, fix.pose, fix.cov, _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source), None, None,
+                    first=fix)
         self._seen.add((fix.source, "seq", fix.seq))
         self._seen.add((fix.source, "t", fix.t_ns))
         return self._count_now(fix, FixOutcome.INITIALIZED)
 
-    def _start(self, t0: int, pose: np.ndarray, P3: np.ndarray, gate: _Gate, speed, speed_sigma):
+    def _start(self, t0: int, pose: np.ndarray, P3: np.ndarray, gate: _Gate, speed, speed_sigma,
+               first: Fix | None = None):
+        """The first step at t0. `first`: the fix the filter starts from; its RSU's time offset gets
+        its slot at once, correlated with the pose (the pose is that fix's, offset included)."""
         c = self.cfg
         u0 = None
         for t, u in self._pre_imu:
@@ -381,6 +453,16 @@ class BusFilter:
             P[ST_YAW_RATE, ST_YAW_RATE] = 0.5 ** 2
         P[ST_GYRO_BIAS, ST_GYRO_BIAS] = sb2
         P[ST_WHEEL_SCALE, ST_WHEEL_SCALE] = c.wheel_scale_sigma0 ** 2
+        gate = gate._replace(rsus=self._memory)
+        if first is not None and self._offsets:
+            x, P, gate = self._add_slot(x, P, gate, first)
+            i = STATE_DIM + gate.clocks.index(first.source)
+            # pose = true pose at t0 - delta = true pose(t0) - J delta: error -J delta, correlated with delta's.
+            J, var, d0 = motion_rate(x), P[i, i], x[i]
+            x[:3] += J * d0  # the pose at t0 is the fix's plus the motion over the offset
+            x[ST_YAW] = wrap_angle(x[ST_YAW])
+            P[:3, :3] += var * np.outer(J, J)
+            P[:3, i] = P[i, :3] = J * var
         self._start_ns = t0
         self._steps = [_Step(t0, u0, x, P, gate)]
         self._dirty = 1
@@ -427,13 +509,14 @@ class BusFilter:
         t0 = steps[0].t
         m = bisect_right(self._fix_t, t0)
         for r in self._fix_recs[:m]:
-            self._archive(r.fix, r.outcome)
+            self._archive(r.fix, r.outcome, r.flagged)
             self._seen.discard((r.fix.source, "seq", r.fix.seq))
             self._seen.discard((r.fix.source, "t", r.fix.t_ns))
         del self._fix_t[:m], self._fix_keys[:m], self._fix_recs[:m]
 
-    def _archive(self, fix: Fix, outcome: FixOutcome):
+    def _archive(self, fix: Fix, outcome: FixOutcome, flagged: bool = False):
         self._archived[outcome.value] += 1
+        self._archived_flagged += flagged
         d = self._archived_src.setdefault(fix.source, count_outcomes([]))
         d[outcome.value] += 1
 
@@ -451,12 +534,14 @@ class BusFilter:
         for j in range(lo, hi):
             rec = self._fix_recs[j]
             tf = rec.fix.t_ns
+            if self._offsets and rec.fix.source not in g.clocks:  # kept whatever becomes of the fix
+                x, P, g = self._add_slot(x, P, g, rec.fix)
             xf, Pf = self._predict(x, P, s_from_ns(tf - t), a) if tf > t else (x, P)
-            xu, Pu, g, outcome, d2 = self._apply_fix(xf, Pf, g, rec.fix, rec.arrival_ns)
+            xu, Pu, g, outcome, d2, flagged = self._apply_fix(xf, Pf, g, rec.fix, rec.arrival_ns, a)
             if outcome.applied:  # split the interval at the fix; a refused fix leaves it whole
                 x, P, t = xu, Pu, tf
             if record:
-                rec.outcome, rec.d2 = outcome, d2
+                rec.outcome, rec.d2, rec.flagged = outcome, d2, flagged
         if t_to > t:
             x, P = self._predict(x, P, s_from_ns(t_to - t), a)
         return x, P, g
@@ -471,7 +556,8 @@ class BusFilter:
         xn[ST_Y] += d * s
         xn[ST_YAW] = wrap_angle(th + w * dt)
         xn[ST_SPEED] = v + a * dt
-        F = _EYE.copy()
+        n = len(x)
+        F = _eye(n).copy()
         F[ST_X, ST_YAW] = -d * s
         F[ST_X, ST_SPEED] = dt * c
         F[ST_X, ST_YAW_RATE] = -d * s * 0.5 * dt
@@ -486,6 +572,9 @@ class BusFilter:
         Pn[ST_SPEED, ST_SPEED] += self._q_v * dt
         Pn[ST_GYRO_BIAS, ST_GYRO_BIAS] += self._q_b * dt
         Pn[ST_WHEEL_SCALE, ST_WHEEL_SCALE] += self._q_k * dt
+        if n > STATE_DIM:
+            k = np.arange(STATE_DIM, n)
+            Pn[k, k] += self._q_d * dt
         return xn, Pn
 
     def _yaw_rate_noise(self, P, dt: float):
@@ -508,12 +597,12 @@ class BusFilter:
             return x, P
         gyro, _, wheel = u
         if wheel is None:
-            H = np.zeros((1, STATE_DIM))
+            H = np.zeros((1, len(x)))
             H[0, ST_YAW_RATE] = H[0, ST_GYRO_BIAS] = 1.0
             nu = np.array([gyro - x[ST_YAW_RATE] - x[ST_GYRO_BIAS]])
             R = np.array([[self._r_g]])
         else:
-            H = np.zeros((2, STATE_DIM))
+            H = np.zeros((2, len(x)))
             H[0, ST_YAW_RATE] = H[0, ST_GYRO_BIAS] = 1.0
             H[1, ST_SPEED] = 1.0 + x[ST_WHEEL_SCALE]
             H[1, ST_WHEEL_SCALE] = x[ST_SPEED]
@@ -522,61 +611,138 @@ class BusFilter:
         return self._kalman(x, P, H, nu, R)
 
     @staticmethod
-    def _kalman(x, P, H, nu, R):
-        PHt = P @ H.T
-        S = H @ PHt + R
+    def _kalman(x, P, H, nu, R, PHt=None, S=None):
+        if PHt is None:
+            PHt = P @ H.T
+            S = H @ PHt + R
         K = np.linalg.solve(S, PHt.T).T
         xn = x + K @ nu
         xn[ST_YAW] = wrap_angle(xn[ST_YAW])
-        A = _EYE - K @ H
+        A = _eye(len(x)) - K @ H
         Pn = A @ P @ A.T + K @ R @ K.T
         return xn, 0.5 * (Pn + Pn.T)
 
-    def _pose_update(self, x, P, fix: Fix, nu):
-        H = np.zeros((3, STATE_DIM))
-        H[0, ST_X] = H[1, ST_Y] = H[2, ST_YAW] = 1.0
-        return self._kalman(x, P, H, nu, fix.cov)
+    # ------------------------------------------------------------------ time offsets
+    def _offset_prior(self, fix: Fix) -> float:
+        """Variance (s²) of a new RSU's time offset."""
+        if fix.clock_bound_ns is None:
+            return self._var0_unknown
+        return self._var0_known + (fix.clock_bound_ns * 1e-9) ** 2
+
+    def _add_slot(self, x, P, g: _Gate, fix: Fix):
+        """Give fix.source a time-offset slot (appended to the state). RSUs not heard from for a while
+        give theirs up first (least recently heard first) while the slots are full; an RSU's estimate
+        is remembered in its record and seeds its slot when it comes back."""
+        rsus = dict(g.rsus)
+        clocks = list(g.clocks)
+        while len(clocks) >= self.cfg.max_offset_slots:
+            j = min(range(len(clocks)), key=lambda k: (rsus[clocks[k]].last_t, clocks[k]))
+            i = STATE_DIM + j
+            rsus[clocks[j]] = rsus[clocks[j]]._replace(offset=(float(x[i]), float(P[i, i])), offset_t=fix.t_ns)
+            keep = np.r_[0:i, i + 1:len(x)]
+            x, P = x[keep], P[np.ix_(keep, keep)]
+            del clocks[j]
+        var0, d0 = self._offset_prior(fix), 0.0
+        rec = rsus.get(fix.source)
+        if rec is not None and rec.offset is not None:
+            d, v = rec.offset
+            v += self._q_d * max(0.0, s_from_ns(fix.t_ns - rec.offset_t))
+            d0, var0 = d, min(v, var0)
+        if rec is None:
+            rsus[fix.source] = RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
+        n = len(x)
+        x = np.append(x, d0)
+        Pn = np.zeros((n + 1, n + 1))
+        Pn[:n, :n] = P
+        Pn[n, n] = var0
+        return x, Pn, g._replace(clocks=tuple(clocks) + (fix.source,), rsus=MappingProxyType(rsus))
 
     # ------------------------------------------------------------------ gating
-    def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None):
-        """Gate one fix against the state at its capture time; returns (x, P, gate, outcome, d2)."""
+    def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None, accel: float):
+        """Gate one fix against the state at its capture time (its RSU's slot already in the state);
+        returns (x, P, gate, outcome, d2, flagged)."""
         delay = None if arrival_ns is None else arrival_ns - fix.t_ns
-        applied = _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source)
-        nu = np.array([fix.x - x[ST_X], fix.y - x[ST_Y], wrap_angle(fix.yaw - x[ST_YAW])])
-        P3 = P[:3, :3]
-        R = fix.cov
-        if self._gate_thr == math.inf:
-            x, P = self._pose_update(x, P, fix, nu)
-            return x, P, applied, FixOutcome.ACCEPTED, float("nan")
-        if g.mode == ACQUIRING:
-            S = P3 + R
-            d2 = float(nu @ np.linalg.solve(S, nu))
-            if d2 > self._gate_thr:
-                return x, P, g._replace(consecutive=g.consecutive + 1), FixOutcome.REJECTED_GATE, d2
-            cand = _Cand(fix.t_ns, fix.source, nu, R, np.diag(P3).copy())
+        rsu = fix.source
+        n = len(x)
+        H = np.zeros((3, n))
+        if self._offsets:
+            i = STATE_DIM + g.clocks.index(rsu)
+            h, H[:, :5], Hd = pose_before(x, x[i], accel)
+            H[:, i] = Hd
+            off_var = (Hd * Hd) * P[i, i]  # the offset's share of each predicted coordinate's variance
+            off_sd = math.sqrt(max(P[i, i], 0.0))
+        else:
+            h = x[:3]
+            H[0, ST_X] = H[1, ST_Y] = H[2, ST_YAW] = 1.0
+            Hd, off_var, off_sd = np.zeros(3), np.zeros(3), 0.0
+        nu = fix.pose - h
+        nu[2] = wrap_angle(nu[2])
+        PHt = P @ H.T
+        HPHt = H @ PHt
+        rec = g.rsus.get(rsu)
+        flagged = rec is not None and rec.flagged
+        # A flagged RSU's fix is gated with its known disagreement added to its covariance and, once
+        # through, applied with that covariance scaled (down-weighted); consensus uses its own covariance.
+        R = R_gate = fix.cov
+        outcome = None
+        if flagged:
+            if self.cfg.flagged_policy == "refuse":
+                outcome, d2 = FixOutcome.REFUSED_FLAGGED, float("nan")
+            else:
+                m, _ = rec.bias()
+                R_gate = R + np.outer(m, m)
+                R = self.cfg.flagged_cov_scale * R_gate
+        if outcome is None:
+            applied = g._replace(mode=TRACKING, last_accept_ns=fix.t_ns, consecutive=0, cands=(), last_delay_ns=delay,
+                                 last_source=rsu)
+            S = HPHt + R
+            if self._gate_thr == math.inf:
+                x, P = self._kalman(x, P, H, nu, R, PHt, S)
+                return x, P, self._observe(applied, fix, nu, HPHt, off_sd), FixOutcome.ACCEPTED, float("nan"), flagged
+            if g.mode == ACQUIRING:
+                d2 = float(nu @ np.linalg.solve(HPHt + R_gate, nu))
+                if d2 > self._gate_thr:
+                    return x, P, g._replace(consecutive=g.consecutive + 1), FixOutcome.REJECTED_GATE, d2, flagged
+                cand = _Cand(fix.t_ns, rsu, nu, fix.cov, np.diag(P[:3, :3]).copy())
+                cands = self._window(g.cands, fix.t_ns) + (cand,)
+                if self._consensus(cands, self.cfg.acquire_min_fixes, self.cfg.acquire_min_sources):
+                    x, P = self._kalman(x, P, H, nu, R, PHt, S)
+                    return x, P, applied, FixOutcome.ACCEPTED, d2, flagged
+                return x, P, g._replace(cands=cands), FixOutcome.UNCONFIRMED, d2, flagged
+            # tracking: the filter's own pose covariance is capped inside S (the offset's share is not)
+            sd = np.sqrt(np.maximum(np.diag(HPHt), 1e-300))
+            f = np.minimum(1.0, np.sqrt(self._cap ** 2 + off_var) / sd)
+            S_gate = HPHt * np.outer(f, f) + R_gate
+            d2 = float(nu @ np.linalg.solve(S_gate, nu))
+            if d2 <= self._gate_thr:
+                x, P = self._kalman(x, P, H, nu, R, PHt, S)
+                return x, P, self._observe(applied, fix, nu, HPHt, off_sd), FixOutcome.ACCEPTED, d2, flagged
+            cand = _Cand(fix.t_ns, rsu, nu, fix.cov, np.diag(P[:3, :3]).copy())
             cands = self._window(g.cands, fix.t_ns) + (cand,)
-            if self._consensus(cands, self.cfg.acquire_min_fixes, self.cfg.acquire_min_sources):
-                x, P = self._pose_update(x, P, fix, nu)
-                return x, P, applied, FixOutcome.ACCEPTED, d2
-            return x, P, g._replace(cands=cands), FixOutcome.UNCONFIRMED, d2
-        # tracking: own pose covariance capped inside S
-        sd = np.sqrt(np.maximum(np.diag(P3), 0.0))
-        f = np.minimum(1.0, self._cap / np.maximum(sd, 1e-300))
-        S = P3 * np.outer(f, f) + R
-        d2 = float(nu @ np.linalg.solve(S, nu))
-        if d2 <= self._gate_thr:
-            x, P = self._pose_update(x, P, fix, nu)
-            return x, P, applied, FixOutcome.ACCEPTED, d2
-        cand = _Cand(fix.t_ns, fix.source, nu, R, np.diag(P3).copy())
-        cands = self._window(g.cands, fix.t_ns) + (cand,)
-        starving = g.last_accept_ns is None or \
-            fix.t_ns - g.last_accept_ns >= ns_from_s(self.cfg.reacquire_after_s)
-        if starving and self._consensus(cands, self.cfg.reacquire_min_fixes, self.cfg.reacquire_min_sources):
-            P = P.copy()
-            P[:3, :3] += np.diag(nu * nu)
-            x, P = self._pose_update(x, P, fix, nu)
-            return x, P, applied, FixOutcome.REACQUIRED, d2
-        return x, P, g._replace(consecutive=g.consecutive + 1, cands=cands), FixOutcome.REJECTED_GATE, d2
+            starving = g.last_accept_ns is None or \
+                fix.t_ns - g.last_accept_ns >= ns_from_s(self.cfg.reacquire_after_s)
+            if starving and self._consensus(cands, self.cfg.reacquire_min_fixes, self.cfg.reacquire_min_sources):
+                P = P.copy()
+                P[:3, :3] += np.diag(nu * nu)
+                x, P = self._kalman(x, P, H, nu, R)
+                return x, P, self._observe(applied, fix, nu, HPHt, off_sd), FixOutcome.REACQUIRED, d2, flagged
+            outcome = FixOutcome.REJECTED_GATE
+            g = g._replace(consecutive=g.consecutive + 1, cands=cands)
+        return x, P, self._observe(g, fix, nu, HPHt, off_sd), outcome, d2, flagged
+
+    def _observe(self, g: _Gate, fix: Fix, nu, HPHt, offset_sigma: float) -> _Gate:
+        """The drift detector takes the fix's innovation (against the filter before the update, with
+        the fix's own covariance: a down-weighting does not hide the disagreement) while tracking."""
+        rsu = fix.source
+        rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
+        rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
+        rsus = dict(g.rsus)
+        if self._drift is not None and g.mode == TRACKING:
+            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, HPHt + fix.cov)
+            rsus[rsu] = rsus[rsu]._replace(flagged_since=self._drift.decide(rsus, rsu, fix.t_ns, offset_sigma))
+        else:
+            rsus[rsu] = rec._replace(last_t=fix.t_ns)
+        return g._replace(rsus=MappingProxyType(rsus))
 
     def _window(self, cands: tuple, t_ns: int) -> tuple:
         cut = t_ns - ns_from_s(self.cfg.reacquire_window_s)
@@ -621,16 +787,70 @@ class BusFilter:
             status = "degraded"
         else:
             status = "ok"
-        rejected = self._archived[FixOutcome.REJECTED_GATE.value] + \
-            sum(1 for r in self._fix_recs if r.outcome is FixOutcome.REJECTED_GATE)
-        accepted = sum(self._archived[o.value] for o in FixOutcome if o.applied) + \
-            sum(1 for r in self._fix_recs if r.outcome.applied)
+        counts = dict(self._archived)
+        flagged_fixes = self._archived_flagged
+        for r in self._fix_recs:
+            counts[r.outcome.value] += 1
+            flagged_fixes += r.flagged
+        accepted = sum(counts[o.value] for o in FixOutcome if o.applied)
+        rejected = counts[FixOutcome.REJECTED_GATE.value]
+        too_old = counts[FixOutcome.TOO_OLD.value] + counts[FixOutcome.BEFORE_START.value]
+        future = counts[FixOutcome.FUTURE.value]
+        refused = counts[FixOutcome.REFUSED_FLAGGED.value]
+        other = sum(counts.values()) - accepted - rejected - too_old - future - refused
         delay = math.nan if g.last_delay_ns is None else s_from_ns(g.last_delay_ns)
         rx = math.nan if self._last_rx_delay_ns is None else s_from_ns(self._last_rx_delay_ns)
         health = Health(status, since, delay, g.last_source, rx, rejected, g.consecutive, accepted,
-                        pos_sigma, yaw_sigma, s_from_ns(extrap_ns))
+                        pos_sigma, yaw_sigma, s_from_ns(extrap_ns), too_old=too_old, future=future,
+                        from_flagged_rsu=flagged_fixes, unknown_clock=self._unknown_clock, other=other,
+                        flagged_rsus=tuple(sorted(k for k, r in g.rsus.items() if r.flagged)))
+        n = STATE_DIM
         return FusedState(t_ns, float(x[ST_X]), float(x[ST_Y]), float(x[ST_YAW]), float(x[ST_SPEED]), float(x[ST_YAW_RATE]),
-                         float(x[ST_GYRO_BIAS]), float(x[ST_WHEEL_SCALE]), P[:3, :3].copy(), P.copy(), health)
+                         float(x[ST_GYRO_BIAS]), float(x[ST_WHEEL_SCALE]), P[:3, :3].copy(), P[:n, :n].copy(), health)
+
+    # ------------------------------------------------------------------ per RSU
+    def rsu_assessments(self) -> dict[str, RsuAssessment]:
+        """Every RSU the filter has heard from (since it started, or remembered from a previous filter),
+        as it stands at the newest step: its time offset and sigma (None if it never had a slot), its
+        drift flag and disagreement, its fixes' final outcomes. Empty before start-up."""
+        if not self._steps:
+            return {}
+        self._ensure_clean()
+        head = self._steps[-1]
+        g = head.g
+        per_src = self.counters()["per_source"]
+        out = {}
+        for rsu, rec in sorted(g.rsus.items()):
+            if rsu in g.clocks:
+                i = STATE_DIM + g.clocks.index(rsu)
+                off, var = float(head.x[i]), float(head.P[i, i])
+            elif rec.offset is not None:
+                off, var = rec.offset
+                var += self._q_d * max(0.0, s_from_ns(head.t - rec.offset_t))
+            else:
+                off = var = None
+            m, C = rec.bias()
+            out[rsu] = RsuAssessment(
+                rsu, off, None if var is None else math.sqrt(max(var, 0.0)), rec.clock_known, rec.flagged,
+                rec.flagged_since, (float(m[0]), float(m[1]), float(m[2])),
+                tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(C)), float(rec.stat), int(rec.last_t),
+                dict(per_src.get(rsu, {})), self.cfg.flagged_policy)
+        return out
+
+    def memory(self) -> dict[str, RsuRecord]:
+        """What a new filter for the same bus may start from (BusFilter(config, memory=...)): every
+        RSU's record with its time offset, flag and disagreement as they stand at the newest step."""
+        if not self._steps:
+            return dict(self._memory)
+        self._ensure_clean()
+        head = self._steps[-1]
+        out = {}
+        for rsu, rec in head.g.rsus.items():
+            if rsu in head.g.clocks:
+                i = STATE_DIM + head.g.clocks.index(rsu)
+                rec = rec._replace(offset=(float(head.x[i]), float(head.P[i, i])), offset_t=head.t)
+            out[rsu] = rec
+        return out
 
 
 class _StepTimes:

@@ -14,6 +14,7 @@ class FixOutcome(str, Enum):
     REACQUIRED = "reacquired"  # failed the (capped) gate but agreed with a consensus of recent fixes
     INITIALIZED = "initialized"  # started the filter (first confident fix)
     REJECTED_GATE = "rejected_gate"  # chi-square gate on the innovation failed
+    REFUSED_FLAGGED = "refused_flagged"  # its RSU is flagged for drift (toptag.fusion.trust) and the policy refuses
     UNCONFIRMED = "unconfirmed"  # start-up from a coarse prior: waiting for a consensus of fixes
     PENDING = "pending"  # stamped after the newest IMU sample; decided when the IMU catches up
     DUPLICATE = "duplicate"  # same source and (sequence or capture time) as a buffered fix
@@ -36,6 +37,7 @@ class FixRecord:
     outcome: FixOutcome = FixOutcome.PENDING
     d2: float = float("nan")  # Mahalanobis distance^2 of the innovation used by the gate
     arrival_ns: int | None = None
+    flagged: bool = False  # its RSU was flagged for drift when it was processed (down-weighted or refused)
 
 
 def count_outcomes(outcomes) -> dict[str, int]:

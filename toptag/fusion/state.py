@@ -32,6 +32,13 @@ class Health:
     pos_sigma_m: float  # sqrt of the largest eigenvalue of the position covariance
     yaw_sigma_rad: float
     extrapolated_s: float  # how far beyond the newest IMU sample the estimate was predicted
+    # Every fix's path (final decisions; fixes received, duplicates included): gated = rejected above.
+    too_old: int = 0  # older than the buffer (or than the filter's start)
+    future: int = 0  # stamped implausibly far ahead of the newest IMU sample
+    from_flagged_rsu: int = 0  # from an RSU flagged for drift: down-weighted (counted accepted) or refused
+    unknown_clock: int = 0  # from an RSU whose clock came without a bound (any outcome)
+    other: int = 0  # duplicates, invalid, before start-up, waiting (acquiring, pending)
+    flagged_rsus: tuple[str, ...] = ()  # RSUs flagged for drift now
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
