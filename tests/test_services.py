@@ -219,3 +219,35 @@ def test_malformed_messages_on_every_key_are_counted_and_services_keep_working(s
     assert "bus-17" in watch.active() and bus.proc.poll() is None
     assert "rejected payload" in bus.output()  # the bus logged what it refused
     assert system["rsu"].proc.poll() is None
+
+
+def test_the_bus_diagnoses_the_rsu_and_the_rsu_shows_it_with_its_clock(system):
+    """The bus assesses rsu-sw on keys.rsu_diagnosis, rsu-sw shows that in its RsuStatus; both carry
+    this host's clock (the test camera's frames say none, so the RSU stamps with its host's). The bus
+    gets no IMU here: its filter starts from a fix and every later fix is counted as from the future."""
+    from protocol.convert import clock_to_message
+    from protocol.messages import FusedPose
+    from toptag.hostclock import probe
+
+    watch, gnss, session = system["watch"], system["gnss"], system["session"]
+    fused: list[FusedPose] = []
+    sub = subscribe_messages(session, keys.fused_pose("bus-17"), FusedPose, fused.append)
+    try:
+        system["start_bus"]()
+        gnss.where = INSIDE
+
+        def diagnosed():
+            s = watch.latest()
+            return s is not None and any(d.bus_id == "bus-17" for d in s.diagnoses)
+        assert wait_until(lambda: diagnosed() and fused and fused[-1].health.future_fixes >= 3, 60), watch.latest()
+    finally:
+        sub.close()
+    host = clock_to_message(probe())
+    s = watch.latest()
+    d = next(d for d in s.diagnoses if d.bus_id == "bus-17")
+    assert s.clock == host and all(f.clock == host for _, f in watch.fixes)
+    assert d.rsu_id == "rsu-sw" and d.intersection_id == "x1" and d.clock_known == (host.sync_uncertainty_ns is not None)
+    assert not d.drift_flagged and not s.drift_flagged and d.advice is None
+    h = fused[-1].health
+    assert h.unknown_clock_fixes == (0 if d.clock_known else h.accepted_fixes + h.future_fixes + h.other_fixes
+                                     + h.rejected_fixes + h.too_old_fixes)

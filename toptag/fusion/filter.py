@@ -155,6 +155,7 @@ class FilterConfig(BaseModel):
     drift_isolation_ratio: float = Field(default=2.0, ge=1)
     drift_min_fixes: float = Field(default=10.0, ge=1)  # effective number of fixes before a flag
     drift_max_offset_sigma_ms: float = Field(default=10.0, gt=0)  # no flag while the RSU's offset is this uncertain
+    drift_min_others: int = Field(default=2, ge=1)  # other RSUs seeing the bus meanwhile, to tell who is wrong
     flagged_policy: Literal["downweight", "refuse"] = "downweight"
     flagged_cov_scale: float = Field(default=4.0, ge=1)  # downweight: R -> scale * (R + bias bias^T)
     # health
@@ -216,10 +217,12 @@ class BusFilter:
         self._var0_known = (c.offset_sigma0_ms * 1e-3) ** 2
         self._var0_unknown = (c.offset_sigma0_unknown_clock_ms * 1e-3) ** 2
         self._q_d = (c.offset_walk_ms * 1e-3) ** 2
+        self._healthy_ns = ns_from_s(c.degraded_after_s)
+        self._calm_stat = chi2_3dof(c.drift_clear_probability)
         self._drift = DriftRule(c.drift_window_s, chi2_3dof(1.0 - c.drift_false_alarm),
                                 chi2_3dof(c.drift_clear_probability), c.drift_min_pos_m,
                                 math.radians(c.drift_min_yaw_deg), c.drift_isolation_ratio, chi2_3dof(0.99),
-                                c.drift_min_fixes, c.drift_max_offset_sigma_ms * 1e-3) \
+                                c.drift_min_fixes, c.drift_max_offset_sigma_ms * 1e-3, c.drift_min_others) \
             if c.drift_detection else None
         # RSUs remembered from a previous filter (their offsets and flags), in the start-up step.
         self._memory = MappingProxyType(dict(memory)) if memory else _NO_RSUS
@@ -611,11 +614,16 @@ class BusFilter:
         return self._kalman(x, P, H, nu, R)
 
     @staticmethod
-    def _kalman(x, P, H, nu, R, PHt=None, S=None):
+    def _kalman(x, P, H, nu, R, PHt=None, S=None, freeze: int | None = None):
+        """Kalman update (Joseph form: right for any gain). `freeze`: a state the update must leave
+        alone (its gain row zeroed, a Schmidt "consider" state): a flagged RSU's time offset, which its
+        biased fixes would otherwise pull."""
         if PHt is None:
             PHt = P @ H.T
             S = H @ PHt + R
         K = np.linalg.solve(S, PHt.T).T
+        if freeze is not None:
+            K[freeze] = 0.0
         xn = x + K @ nu
         xn[ST_YAW] = wrap_angle(xn[ST_YAW])
         A = _eye(len(x)) - K @ H
@@ -659,90 +667,125 @@ class BusFilter:
 
     # ------------------------------------------------------------------ gating
     def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None, accel: float):
-        """Gate one fix against the state at its capture time (its RSU's slot already in the state);
-        returns (x, P, gate, outcome, d2, flagged)."""
-        delay = None if arrival_ns is None else arrival_ns - fix.t_ns
+        """Gate one fix against the state at its capture time (its RSU's slot already in the state),
+        apply it if it passes, and show it to the drift detector; returns (x, P, gate, outcome, d2,
+        flagged: whether its RSU was flagged)."""
         rsu = fix.source
         n = len(x)
         H = np.zeros((3, n))
+        i = None
         if self._offsets:
             i = STATE_DIM + g.clocks.index(rsu)
             h, H[:, :5], Hd = pose_before(x, x[i], accel)
             H[:, i] = Hd
             off_var = (Hd * Hd) * P[i, i]  # the offset's share of each predicted coordinate's variance
-            off_sd = math.sqrt(max(P[i, i], 0.0))
         else:
             h = x[:3]
             H[0, ST_X] = H[1, ST_Y] = H[2, ST_YAW] = 1.0
-            Hd, off_var, off_sd = np.zeros(3), np.zeros(3), 0.0
+            off_var = np.zeros(3)
         nu = fix.pose - h
         nu[2] = wrap_angle(nu[2])
         PHt = P @ H.T
         HPHt = H @ PHt
         rec = g.rsus.get(rsu)
         flagged = rec is not None and rec.flagged
-        # A flagged RSU's fix is gated with its known disagreement added to its covariance and, once
-        # through, applied with that covariance scaled (down-weighted); consensus uses its own covariance.
+        # A flagged RSU does not move its own time offset (a consider state): a turned camera's bias
+        # along the track would pass for a late clock.
+        offset_before = None if i is None else (float(x[i]), float(P[i, i]))
+        x, P, g2, outcome, d2 = self._gate(x, P, g, fix, arrival_ns, H, nu, PHt, HPHt, off_var, rec,
+                                           i if flagged else None)
+        if outcome is not FixOutcome.UNCONFIRMED and not (g.mode == ACQUIRING and not outcome.applied):
+            g2, flagged_now = self._observe(g2, fix, nu, HPHt, offset_before)
+            if flagged_now and not flagged and i is not None:
+                x, P = self._restore_offset(x, P, i, g2.rsus[rsu].calm_offset, self._offset_prior(fix))
+        return x, P, g2, outcome, d2, flagged
+
+    def _gate(self, x, P, g: _Gate, fix: Fix, arrival_ns, H, nu, PHt, HPHt, off_var, rec, freeze):
+        """The gate and the update: (x, P, gate, outcome, d2). A flagged RSU's fix is gated with its
+        known disagreement added to its covariance and applied with that covariance scaled
+        (down-weighted), or refused; consensus uses the fix's own covariance."""
+        rsu = fix.source
         R = R_gate = fix.cov
-        outcome = None
-        if flagged:
+        if rec is not None and rec.flagged:
             if self.cfg.flagged_policy == "refuse":
-                outcome, d2 = FixOutcome.REFUSED_FLAGGED, float("nan")
-            else:
-                m, _ = rec.bias()
-                R_gate = R + np.outer(m, m)
-                R = self.cfg.flagged_cov_scale * R_gate
-        if outcome is None:
-            applied = g._replace(mode=TRACKING, last_accept_ns=fix.t_ns, consecutive=0, cands=(), last_delay_ns=delay,
-                                 last_source=rsu)
-            S = HPHt + R
-            if self._gate_thr == math.inf:
-                x, P = self._kalman(x, P, H, nu, R, PHt, S)
-                return x, P, self._observe(applied, fix, nu, HPHt, off_sd), FixOutcome.ACCEPTED, float("nan"), flagged
-            if g.mode == ACQUIRING:
-                d2 = float(nu @ np.linalg.solve(HPHt + R_gate, nu))
-                if d2 > self._gate_thr:
-                    return x, P, g._replace(consecutive=g.consecutive + 1), FixOutcome.REJECTED_GATE, d2, flagged
-                cand = _Cand(fix.t_ns, rsu, nu, fix.cov, np.diag(P[:3, :3]).copy())
-                cands = self._window(g.cands, fix.t_ns) + (cand,)
-                if self._consensus(cands, self.cfg.acquire_min_fixes, self.cfg.acquire_min_sources):
-                    x, P = self._kalman(x, P, H, nu, R, PHt, S)
-                    return x, P, applied, FixOutcome.ACCEPTED, d2, flagged
-                return x, P, g._replace(cands=cands), FixOutcome.UNCONFIRMED, d2, flagged
-            # tracking: the filter's own pose covariance is capped inside S (the offset's share is not)
-            sd = np.sqrt(np.maximum(np.diag(HPHt), 1e-300))
-            f = np.minimum(1.0, np.sqrt(self._cap ** 2 + off_var) / sd)
-            S_gate = HPHt * np.outer(f, f) + R_gate
-            d2 = float(nu @ np.linalg.solve(S_gate, nu))
-            if d2 <= self._gate_thr:
-                x, P = self._kalman(x, P, H, nu, R, PHt, S)
-                return x, P, self._observe(applied, fix, nu, HPHt, off_sd), FixOutcome.ACCEPTED, d2, flagged
+                return x, P, g, FixOutcome.REFUSED_FLAGGED, float("nan")
+            m, _ = rec.bias()
+            R_gate = R + np.outer(m, m)
+            R = self.cfg.flagged_cov_scale * R_gate
+        delay = None if arrival_ns is None else arrival_ns - fix.t_ns
+        applied = g._replace(mode=TRACKING, last_accept_ns=fix.t_ns, consecutive=0, cands=(), last_delay_ns=delay,
+                             last_source=rsu)
+        S = HPHt + R
+        if self._gate_thr == math.inf:
+            x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
+            return x, P, applied, FixOutcome.ACCEPTED, float("nan")
+        if g.mode == ACQUIRING:
+            d2 = float(nu @ np.linalg.solve(HPHt + R_gate, nu))
+            if d2 > self._gate_thr:
+                return x, P, g._replace(consecutive=g.consecutive + 1), FixOutcome.REJECTED_GATE, d2
             cand = _Cand(fix.t_ns, rsu, nu, fix.cov, np.diag(P[:3, :3]).copy())
             cands = self._window(g.cands, fix.t_ns) + (cand,)
-            starving = g.last_accept_ns is None or \
-                fix.t_ns - g.last_accept_ns >= ns_from_s(self.cfg.reacquire_after_s)
-            if starving and self._consensus(cands, self.cfg.reacquire_min_fixes, self.cfg.reacquire_min_sources):
-                P = P.copy()
-                P[:3, :3] += np.diag(nu * nu)
-                x, P = self._kalman(x, P, H, nu, R)
-                return x, P, self._observe(applied, fix, nu, HPHt, off_sd), FixOutcome.REACQUIRED, d2, flagged
-            outcome = FixOutcome.REJECTED_GATE
-            g = g._replace(consecutive=g.consecutive + 1, cands=cands)
-        return x, P, self._observe(g, fix, nu, HPHt, off_sd), outcome, d2, flagged
+            if self._consensus(cands, self.cfg.acquire_min_fixes, self.cfg.acquire_min_sources):
+                x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
+                return x, P, applied, FixOutcome.ACCEPTED, d2
+            return x, P, g._replace(cands=cands), FixOutcome.UNCONFIRMED, d2
+        # tracking: the filter's own pose covariance is capped inside S (the offset's share is not)
+        sd = np.sqrt(np.maximum(np.diag(HPHt), 1e-300))
+        f = np.minimum(1.0, np.sqrt(self._cap ** 2 + off_var) / sd)
+        S_gate = HPHt * np.outer(f, f) + R_gate
+        d2 = float(nu @ np.linalg.solve(S_gate, nu))
+        if d2 <= self._gate_thr:
+            x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
+            return x, P, applied, FixOutcome.ACCEPTED, d2
+        cand = _Cand(fix.t_ns, rsu, nu, fix.cov, np.diag(P[:3, :3]).copy())
+        cands = self._window(g.cands, fix.t_ns) + (cand,)
+        starving = g.last_accept_ns is None or \
+            fix.t_ns - g.last_accept_ns >= ns_from_s(self.cfg.reacquire_after_s)
+        if starving and self._consensus(cands, self.cfg.reacquire_min_fixes, self.cfg.reacquire_min_sources):
+            P = P.copy()
+            P[:3, :3] += np.diag(nu * nu)
+            x, P = self._kalman(x, P, H, nu, R, freeze=freeze)
+            return x, P, applied, FixOutcome.REACQUIRED, d2
+        return x, P, g._replace(consecutive=g.consecutive + 1, cands=cands), FixOutcome.REJECTED_GATE, d2
 
-    def _observe(self, g: _Gate, fix: Fix, nu, HPHt, offset_sigma: float) -> _Gate:
+    def _observe(self, g: _Gate, fix: Fix, nu, HPHt, offset_before) -> tuple[_Gate, bool]:
         """The drift detector takes the fix's innovation (against the filter before the update, with
-        the fix's own covariance: a down-weighting does not hide the disagreement) while tracking."""
+        the fix's own covariance: a down-weighting does not hide the disagreement) while the filter
+        is healthy; returns the gate and whether the RSU is flagged now. While its RSU agrees (its
+        statistic below the clearing level), its time offset before this fix is remembered as calm."""
         rsu = fix.source
         rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
         rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
+        if offset_before is not None and not rec.flagged and rec.stat < self._calm_stat:
+            rec = rec._replace(calm_offset=offset_before)
         rsus = dict(g.rsus)
-        if self._drift is not None and g.mode == TRACKING:
-            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, HPHt + fix.cov)
-            rsus[rsu] = rsus[rsu]._replace(flagged_since=self._drift.decide(rsus, rsu, fix.t_ns, offset_sigma))
+        healthy = g.mode == TRACKING and g.last_accept_ns is not None and \
+            fix.t_ns - g.last_accept_ns <= self._healthy_ns
+        if self._drift is not None and healthy:
+            rec = self._drift.accumulate(rec, fix.t_ns, nu, HPHt + fix.cov)
+            rsus[rsu] = rec
+            sd = 0.0 if offset_before is None else math.sqrt(max(offset_before[1], 0.0))
+            rec = rec._replace(flagged_since=self._drift.decide(rsus, rsu, fix.t_ns, sd))
         else:
-            rsus[rsu] = rec._replace(last_t=fix.t_ns)
-        return g._replace(rsus=MappingProxyType(rsus))
+            rec = rec._replace(last_t=fix.t_ns)
+        rsus[rsu] = rec
+        return g._replace(rsus=MappingProxyType(rsus)), rec.flagged
+
+    @staticmethod
+    def _restore_offset(x, P, i: int, calm, prior_var: float):
+        """A newly flagged RSU's time offset goes back to its calm value (before its fixes began to
+        disagree) with its prior's variance, as an estimate of its own (its correlations dropped):
+        what its fixes taught since may have been the drift. While it is flagged that variance
+        widens its innovations along the track, so only a disagreement an offset cannot explain
+        keeps it flagged, and once cleared the offset is learnt again."""
+        x, P = x.copy(), P.copy()
+        var = max(float(P[i, i]), prior_var)
+        if calm is not None:
+            x[i] = calm[0]
+        P[i, :] = 0.0
+        P[:, i] = 0.0
+        P[i, i] = var
+        return x, P
 
     def _window(self, cands: tuple, t_ns: int) -> tuple:
         cut = t_ns - ns_from_s(self.cfg.reacquire_window_s)

@@ -19,10 +19,15 @@ An RSU is flagged when
     part of its disagreement is a late clock: an offset looks like a bias along the track), and
   - the bias is larger than the calibration's accuracy (`min_pos_m` in position or `min_yaw_rad` in
     yaw: a bias that small is calibration error, not drift), and
-  - other, unflagged RSUs have sent fixes within the window (without them nobody can tell who is
-    wrong), and its T is at least `isolation_ratio` times each of theirs: the filter follows every
-    RSU a little, so the others see a share of one RSU's bias; the one that turned sees most of it.
-It is cleared when T falls below the `clear_probability` quantile and the bias below half the floors.
+  - at least `min_others` other, unflagged RSUs have sent fixes within the window (with one other
+    the disagreement is symmetric: nobody can tell who is wrong), and its T is at least
+    `isolation_ratio` times each of theirs: the filter follows every RSU a little, so the others see
+    a share of one RSU's bias; the one that turned sees most of it.
+Innovations enter only while the filter is healthy (tracking, a fix applied within the last second):
+a starved or re-acquiring filter is no reference to judge an RSU by.
+It is cleared when, over at least `min_fixes` fixes again, T falls below the `clear_probability`
+quantile (old evidence fades with the window: a camera seen agreeing on the next pass is cleared
+within a second or two).
 While flagged, its fixes are down-weighted (covariance scaled and the bias added to it) or refused
 (`FilterConfig.flagged_policy`); the statistic keeps running on the unweighted innovation so the
 flag clears after a recalibration.
@@ -55,6 +60,7 @@ class RsuRecord(NamedTuple):
     offset: tuple[float, float] | None = None
     offset_t: int | None = None
     sums: tuple[float, float] = (0.0, 0.0)  # sum w, sum w^2 (for n_eff)
+    calm_offset: tuple[float, float] | None = None  # its offset (s, s²) when it last agreed
 
     @property
     def _sw(self) -> float:
@@ -88,6 +94,7 @@ class DriftRule:
     clip_d2: float  # innovations are clipped to this Mahalanobis radius²
     min_fixes: float
     max_offset_sigma_s: float
+    min_others: int = 2
 
     def accumulate(self, rec: RsuRecord, t_ns: int, nu: np.ndarray, S: np.ndarray) -> RsuRecord:
         """The record with one more innovation nu (covariance S) at t_ns."""
@@ -104,8 +111,8 @@ class DriftRule:
         stat = float(b @ np.linalg.solve(A2, b))
         return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=stat, n_eff=sw * sw / sw2, sums=(sw, sw2))
 
-    def _large(self, m: np.ndarray, scale: float) -> bool:
-        return math.hypot(m[0], m[1]) > scale * self.min_pos_m or abs(m[2]) > scale * self.min_yaw_rad
+    def _large(self, m: np.ndarray) -> bool:
+        return math.hypot(m[0], m[1]) > self.min_pos_m or abs(m[2]) > self.min_yaw_rad
 
     def decide(self, records: dict[str, RsuRecord], rsu: str, t_ns: int, offset_sigma_s: float = 0.0) -> int | None:
         """The flag of `rsu` (its flagged_since, or None) after its record was updated at t_ns;
@@ -113,16 +120,16 @@ class DriftRule:
         rec = records[rsu]
         m, _ = rec.bias()
         if rec.flagged:
-            if rec.stat < self.clear_stat and not self._large(m, 0.5):
+            if rec.stat < self.clear_stat and rec.n_eff >= self.min_fixes:
                 return None
             return rec.flagged_since
         if rec.stat <= self.flag_stat or rec.n_eff < self.min_fixes or offset_sigma_s > self.max_offset_sigma_s \
-                or not self._large(m, 1.0):
+                or not self._large(m):
             return None
         window_ns = self.window_s * 1e9
         others = [o for k, o in records.items()
                   if k != rsu and not o.flagged and o.A is not None and t_ns - o.last_t <= window_ns]
-        if not others or any(rec.stat < self.isolation_ratio * o.stat for o in others):
+        if len(others) < self.min_others or any(rec.stat < self.isolation_ratio * o.stat for o in others):
             return None
         return t_ns
 

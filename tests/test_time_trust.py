@@ -1,0 +1,311 @@
+"""Time and trust in the bus filter: each RSU's time offset estimated in the state, drifted cameras
+flagged and down-weighted, every fix's path counted; the same in any arrival order. Fixes come from
+the fusion study's error model with the simulator's faults (sim.faults)."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from sim.faults import RsuFault, faults_from_options
+from sim.motion import ImuModel, bus_trajectory
+from sim.studies.fusion import FixErrorModel, simulate_fixes
+from toptag.fix import Fix
+from toptag.fusion.filter import BusFilter, FilterConfig
+from toptag.fusion.offsets import pose_before
+from toptag.fusion.outcomes import FixOutcome
+from toptag.fusion.trust import CALIBRATE_CHECK
+
+pytestmark = pytest.mark.unit
+
+MS = 1_000_000
+
+
+@pytest.fixture(scope="module")
+def turn():
+    traj = bus_trajectory("left", "w", seed=0)
+    imu = ImuModel().synthesize(traj, 0.0, traj.duration, np.random.default_rng(21))
+    return traj, imu
+
+
+def fixes_with(traj, faults: dict, seed: int = 5) -> list[Fix]:
+    return simulate_fixes(traj, FixErrorModel(), 4, np.random.default_rng(seed), faults=faults)
+
+
+def arrivals(fixes, faults, delay_ms=100.0, jitter_ms=0.0, seed=0):
+    """(arrival on the bus clock, fix): exposure + latency + delay; stamp = exposure + latency + offset."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for f in fixes:
+        clock = faults.get(f.source, RsuFault()).clock_offset_ms
+        out.append((f.t_ns - int(clock * MS) + int((delay_ms + jitter_ms * rng.uniform(-1, 1)) * MS), f))
+    return out
+
+
+def drive(flt, imu, arr, on_output=None):
+    """Feed IMU rows (an ImuSamples or a list of its rows) and (arrival, fix) in time order."""
+    arr = sorted(arr, key=lambda a: a[0])
+    j = 0
+    for k, (t_ns, g, ax, ay, w) in enumerate(imu if isinstance(imu, list) else imu.rows()):
+        while j < len(arr) and arr[j][0] < t_ns:
+            flt.add_fix(arr[j][1], arrival_ns=arr[j][0])
+            j += 1
+        flt.add_imu(t_ns, g, ax, ay, w)
+        if on_output is not None and k % 10 == 0 and flt.initialized:
+            on_output(t_ns)
+    for a, f in arr[j:]:
+        flt.add_fix(f, arrival_ns=a)
+    return flt
+
+
+def pos_err(est, traj):
+    st = traj.state_at_ns(est.t_ns)
+    return math.hypot(est.x - st.x, est.y - st.y)
+
+
+# ----------------------------------------------------------------------------- the model
+def test_pose_before_jacobians_match_finite_differences():
+    x = np.array([3.0, -2.0, 0.7, 7.5, 0.4, 0.01, 0.02])
+    for delta in (0.0, 0.03, -0.05):
+        h, Hs, Hd = pose_before(x, delta, accel=0.8)
+        eps = 1e-6
+        for j in range(5):
+            dx = np.zeros(7)
+            dx[j] = eps
+            num = (pose_before(x + dx, delta, 0.8)[0] - pose_before(x - dx, delta, 0.8)[0]) / (2 * eps)
+            assert np.allclose(Hs[:, j], num, atol=1e-7), (delta, j)
+        num = (pose_before(x, delta + eps, 0.8)[0] - pose_before(x, delta - eps, 0.8)[0]) / (2 * eps)
+        assert np.allclose(Hd, num, atol=1e-7)
+    # 40 ms at 7.5 m/s heading 0.7 rad: the bus was 30 cm back along its heading
+    h, _, _ = pose_before(np.array([0.0, 0.0, 0.7, 7.5, 0.0, 0.0, 0.0]), 0.04, 0.0)
+    assert np.allclose(h[:2], -0.3 * np.array([math.cos(0.7), math.sin(0.7)]))
+
+
+def test_an_unknown_offset_widens_the_gate_along_the_track_only(turn):
+    """A new RSU with an unknown clock: its fix 25 cm ahead along the track is what a 30 ms offset
+    makes (accepted); 25 cm across the track is no offset at all (rejected)."""
+    traj, imu = turn
+    base = fixes_with(traj, {})
+    rows = [r for r in imu.rows() if r[0] <= traj.t_ns(2.0)]
+    outcomes = {}
+    for name, direction in (("along", 0.0), ("across", math.pi / 2)):
+        flt = BusFilter()
+        drive(flt, rows, [(f.t_ns + 50 * MS, f) for f in base if f.t_ns < traj.t_ns(1.8)])
+        st = traj.state_at(1.95)
+        a = st.yaw + direction
+        probe = Fix(traj.t_ns(1.95), st.x + 0.25 * math.cos(a), st.y + 0.25 * math.sin(a), st.yaw,
+                    np.diag([0.03 ** 2, 0.03 ** 2, math.radians(0.1) ** 2]), "rsu-new", 0, clock_bound_ns=None)
+        outcomes[name] = flt.add_fix(probe, arrival_ns=rows[-1][0])
+    assert outcomes == {"along": FixOutcome.ACCEPTED, "across": FixOutcome.REJECTED_GATE}
+
+
+# ----------------------------------------------------------------------------- offsets
+@pytest.mark.parametrize("spec", ["rsu-se=30", "rsu-se=60,rsu-ne=60"])
+def test_rsu_offsets_are_estimated_within_3ms_in_one_pass(turn, spec):
+    traj, imu = turn
+    faults = faults_from_options(clock_offset_ms=spec)
+    flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults, jitter_ms=30))
+    a = flt.rsu_assessments()
+    assert set(a) == {"rsu-sw", "rsu-se", "rsu-ne", "rsu-nw"}
+    for rsu, v in a.items():
+        injected = faults[rsu].time_offset_ns / MS if rsu in faults else 0.0
+        assert abs(1e3 * v.offset_s - injected) < 3.0, (rsu, v)
+        assert 1e3 * v.offset_sigma_s < 3.0
+        assert v.clock_known == (rsu not in faults)  # an offset clock says it is undisciplined
+    assert pos_err(flt.estimate(), traj) < 0.05
+    h = flt.estimate().health
+    n_unknown = sum(1 for f in fixes_with(traj, faults) if f.source in faults)
+    assert h.unknown_clock == n_unknown > 0
+
+
+def test_capture_latency_on_a_disciplined_clock_is_estimated_too(turn):
+    traj, imu = turn
+    faults = faults_from_options(capture_latency_ms="rsu-nw=25")
+    flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
+    v = flt.rsu_assessments()["rsu-nw"]
+    assert v.clock_known and abs(1e3 * v.offset_s - 25.0) < 3.0
+
+
+# ----------------------------------------------------------------------------- ordering
+def test_out_of_order_replay_reproduces_offsets_and_flags_bit_for_bit(turn):
+    traj, imu = turn
+    faults = faults_from_options(clock_offset_ms="rsu-ne=40", drift_deg="rsu-se=0.5@2")
+    fixes = fixes_with(traj, faults, seed=8)
+    in_order = arrivals(fixes, faults, delay_ms=150.0)
+    rng = np.random.default_rng(3)
+    shuffled = [(a - 150 * MS + int(rng.uniform(20, 600)) * MS, f) for a, f in in_order]
+    first = min(fixes, key=lambda f: f.t_ns)
+    shuffled = [(min(a for a, _ in shuffled) - 1, first)] + [s for s in shuffled if s[1] is not first]
+    a, b = drive(BusFilter(), imu, in_order), drive(BusFilter(), imu, shuffled)
+    ea, eb = a.estimate(), b.estimate()
+    assert np.array_equal(ea.state, eb.state) and np.array_equal(ea.state_cov, eb.state_cov)
+    ra, rb = a.rsu_assessments(), b.rsu_assessments()
+    assert ra.keys() == rb.keys()
+    for k in ra:
+        assert (ra[k].offset_s, ra[k].offset_sigma_s, ra[k].flagged_since_ns, ra[k].disagreement) == \
+               (rb[k].offset_s, rb[k].offset_sigma_s, rb[k].flagged_since_ns, rb[k].disagreement), k
+    assert ra["rsu-se"].flagged and abs(1e3 * ra["rsu-ne"].offset_s - 40) < 3
+    assert ea.health.from_flagged_rsu == eb.health.from_flagged_rsu > 0
+
+
+# ----------------------------------------------------------------------------- drift
+def test_a_turned_camera_is_flagged_and_down_weighted_the_others_not(turn):
+    traj, imu = turn
+    faults = faults_from_options(drift_deg="rsu-se=0.3@2")
+    times = {}
+    flt = BusFilter()
+
+    def watch(t_ns):
+        for rsu in flt.estimate(t_ns).health.flagged_rsus:
+            times.setdefault(rsu, traj.seconds(t_ns))
+    drive(flt, imu, arrivals(fixes_with(traj, faults), faults), on_output=watch)
+    a = flt.rsu_assessments()
+    assert set(times) == {"rsu-se"} and a["rsu-se"].flagged
+    assert not any(v.flagged for k, v in a.items() if k != "rsu-se")
+    se = a["rsu-se"]
+    assert 0.02 < se.disagreement_m < 0.15 and abs(math.degrees(se.disagreement[2])) > 0.15  # the bus yaw turns too
+    assert CALIBRATE_CHECK in se.advice and "down-weighted" in se.advice
+    h = flt.estimate().health
+    assert h.flagged_rsus == ("rsu-se",) and h.from_flagged_rsu > 0
+    assert pos_err(flt.estimate(), traj) < 0.05
+
+
+def test_refuse_policy_refuses_a_flagged_rsu(turn):
+    traj, imu = turn
+    faults = faults_from_options(drift_deg="rsu-se=0.3@2")
+    flt = drive(BusFilter(FilterConfig(flagged_policy="refuse")), imu, arrivals(fixes_with(traj, faults), faults))
+    c = flt.counters()
+    assert c["refused_flagged"] > 0 and c["per_source"]["rsu-se"]["refused_flagged"] == c["refused_flagged"]
+    assert "refused" in flt.rsu_assessments()["rsu-se"].advice
+
+
+def test_the_flag_clears_once_the_camera_agrees_again(turn):
+    """rsu-se is turned during one pass (flagged) and recalibrated before the next: the bus's next
+    filter starts from what the last one learnt (flagged), and clears the flag once rsu-se agrees."""
+    traj, imu = turn
+    faults = faults_from_options(drift_deg="rsu-se=0.5@2")
+    first = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
+    assert first.rsu_assessments()["rsu-se"].flagged
+    later = bus_trajectory("left", "w", seed=0, t0_ns=traj.t0_ns + 120 * 10**9)
+    imu2 = ImuModel().synthesize(later, 0.0, later.duration, np.random.default_rng(22))
+    flagged = []
+    second = BusFilter(memory=first.memory())
+    drive(second, imu2, arrivals(fixes_with(later, {}, seed=6), {}),
+          on_output=lambda t: flagged.append((later.seconds(t), second.estimate(t).health.flagged_rsus)))
+    assert flagged[0][1] == ("rsu-se",)  # still flagged when the next pass starts
+    assert not second.rsu_assessments()["rsu-se"].flagged and flagged[-1][1] == ()
+    cleared = next(t for t, f in flagged if f == ())
+    in_view = min(later.seconds(f.t_ns) for f in fixes_with(later, {}, seed=6) if f.source == "rsu-se")
+    assert cleared - in_view < 3.0
+
+
+def test_no_flag_without_a_fault(turn):
+    traj, imu = turn
+    for seed in range(3):
+        flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, {}, seed=seed), {}, jitter_ms=30, seed=seed))
+        assert not any(v.flagged for v in flt.rsu_assessments().values())
+
+
+# ----------------------------------------------------------------------------- accounting
+def test_every_fix_path_is_counted(turn):
+    traj, imu = turn
+    fixes = fixes_with(traj, {})
+    flt = BusFilter(FilterConfig(buffer_s=1.0))
+    rows = list(imu.rows())
+    extra = [fixes[10].replace(seq=fixes[10].seq),  # a duplicate
+             fixes[20].replace(x=float("nan"), seq=10_001),  # invalid
+             fixes[30].replace(t_ns=fixes[30].t_ns + 3_000 * MS, seq=10_002),  # from the future
+             fixes[40].replace(clock_bound_ns=None, seq=10_003, t_ns=fixes[40].t_ns + 1)]  # unknown clock
+    arr = [(f.t_ns + 80 * MS, f) for f in fixes]
+    arr += [(fixes[10].t_ns + 90 * MS, extra[0]), (fixes[20].t_ns + 90 * MS, extra[1]),
+            (fixes[30].t_ns + 90 * MS, extra[2]), (fixes[40].t_ns + 90 * MS, extra[3])]
+    arr += [(fixes[50].t_ns + 1_500 * MS, fixes[50].replace(seq=10_004, t_ns=fixes[50].t_ns + 2))]  # too old
+    drive(flt, rows, arr)
+    h = flt.estimate().health
+    c = flt.counters()
+    assert c["fixes"] == len(arr)
+    assert h.accepted + h.rejected + h.too_old + h.future + c["refused_flagged"] + h.other == len(arr)
+    assert h.too_old >= 1 and h.future >= 1 and h.unknown_clock == 1 and c["duplicate"] == 1 and c["invalid"] == 1
+
+
+# ----------------------------------------------------------------------------- memory, slots
+def test_a_new_filter_starts_from_what_the_last_one_learnt(turn):
+    traj, imu = turn
+    faults = faults_from_options(clock_offset_ms="rsu-ne=40", drift_deg="rsu-se=0.5@2")
+    old = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
+    new = BusFilter(memory=old.memory())
+    rows = list(imu.rows())
+    fixes = [f for f in fixes_with(traj, faults, seed=9) if f.t_ns < traj.t_ns(4.0)]
+    drive(new, rows[:420], arrivals(fixes, faults))
+    a = new.rsu_assessments()
+    assert a["rsu-se"].flagged  # still flagged: nothing has cleared it
+    assert abs(1e3 * a["rsu-ne"].offset_s - 40) < 3 and 1e3 * a["rsu-ne"].offset_sigma_s < 5
+
+
+def test_slots_are_given_up_least_recently_heard_first_and_remembered(turn):
+    traj, imu = turn
+    faults = faults_from_options(clock_offset_ms="rsu-sw=30")
+    flt = drive(BusFilter(FilterConfig(max_offset_slots=2)), imu, arrivals(fixes_with(traj, faults), faults))
+    a = flt.rsu_assessments()
+    assert len(a) == 4 and all(v.offset_s is not None for v in a.values())
+    assert abs(1e3 * a["rsu-sw"].offset_s - 30) < 6  # seen first, given its slot up, remembered
+
+
+# ----------------------------------------------------------------------------- the study
+def test_fusion_study_writes_the_evidence_of_time_and_trust(tmp_path):
+    from sim.studies import fusion
+
+    res = fusion.run(tmp_path, [100], jitter_ms=30, seed=2, runs=2, plots=False, log=lambda *_: None,
+                     progress=False, faults=faults_from_options(clock_offset_ms="rsu-ne=30",
+                                                                drift_deg="rsu-se=0.3@3"))
+    saved = json.loads((tmp_path / "results.json").read_text())
+    case = saved["faulted"]["latency_ms"]["100"]
+    assert math.isfinite(case["fused_pos_rms_m"]) and case["fused_over_fault_free"] < 1.5
+    o = case["offset_estimate_ms"]["rsu-ne"]
+    assert o["injected_ms"] == 30 and abs(o["final_ms_mean"] - 30) < 3 and o["sigma_ms_mean"] > 0
+    d = case["drift_flagged"]
+    assert d["rsu-se"]["injected"] and d["rsu-se"]["runs_flagged"] == 2 and d["rsu-se"]["delay_s_max"] < 10
+    assert case["false_flags"] == 0 == saved["latency_ms"]["100"]["false_flags"]
+    assert saved["time_and_trust"]["100"]["offsets_within_3ms_every_run"]
+    assert res["setup"]["faults"].startswith("rsu-ne")
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--clock-offset-ms", "rsu-se"], "--clock-offset-ms: expected RSU=MS"),
+    (["--drift-deg", "rsu-se=big"], "--drift-deg: expected RSU=DEG"),
+    (["--clock-offset-ms", "rsu-xx=30"], "faults name RSUs the study does not have: rsu-xx"),
+    (["--route", "left,loop"], "--route: unknown route(s) loop"),
+])
+def test_fusion_study_options_are_checked(tmp_path, capsys, argv, says):
+    from sim.studies import fusion
+
+    assert fusion.main(["--out", str(tmp_path), "--runs", "1", "--no-plots", *argv]) == 2
+    err = capsys.readouterr().err
+    assert says in err and len(err.strip().splitlines()) == 1
+
+
+# ----------------------------------------------------------------------------- on the wire
+def test_wire_carries_the_clock_offsets_flags_and_fix_paths(turn):
+    from protocol.codec import decode, encode
+    from protocol.convert import assessment_to_message, fix_from_message, fix_to_message, fused_to_message
+    from protocol.messages import ClockInfo, RsuDiagnosis
+
+    traj, imu = turn
+    fix = fixes_with(traj, {})[5].replace(z=3.0, method="level", tags=(3,), rms_px=0.2)
+    for clock, bound in ((ClockInfo(source="ntp", sync_uncertainty_ns=700_000), 700_000),
+                         (ClockInfo(source="system"), None), (None, None)):
+        back = fix_from_message(fix_to_message(fix, "bus-17", "x1", fix.t_ns + 5 * MS, clock=clock))
+        assert back.clock_bound_ns == bound
+    faults = faults_from_options(clock_offset_ms="rsu-ne=40", drift_deg="rsu-se=0.3@2")
+    flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
+    t = flt.head_ns
+    se = assessment_to_message(flt.rsu_assessments()["rsu-se"], "bus-17", "x1", t)
+    ne = decode(encode(assessment_to_message(flt.rsu_assessments()["rsu-ne"], "bus-17", "x1", t)), RsuDiagnosis)
+    assert se.drift_flagged and se.flagged_since_ns <= t and "toptag calibrate check" in se.advice
+    assert se.disagreement_m > 0.02 and se.fixes_accepted > 0
+    assert abs(ne.time_offset_ns / MS - 40) < 3 and ne.time_offset_sigma_ns < 3 * MS and not ne.clock_known
+    h = fused_to_message(flt.estimate(), "bus-17").health
+    assert h.flagged_rsus == ["rsu-se"] and h.flagged_rsu_fixes > 0 and h.unknown_clock_fixes > 0
+    c = flt.counters()
+    assert h.accepted_fixes + h.rejected_fixes + h.too_old_fixes + h.future_fixes + c["refused_flagged"] + \
+        h.other_fixes == c["fixes"]
