@@ -7,9 +7,9 @@ the buffer is re-propagated from its capture time.
 
 The filter re-propagates lazily: `add_fix` redoes the steps up to the fix, the next `add_imu` or
 `estimate` the rest. So the figure to compare between two versions of the filter is the total (all
-three calls) per fix, and the per-call figures say where it goes. Each figure is the best of `--runs`
-runs (the least disturbed by other work on a shared machine); quote ratios between versions measured
-on one machine in one sitting.
+three calls) per fix, and the per-call figures say where it goes. Times are the CPU time of the
+calling thread (time.thread_time_ns), so time spent waiting for a busy CPU is not counted; each figure
+is the best of `--runs` runs. Quote ratios between versions measured on one machine in one sitting.
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def _one_run(imu, arrivals, out_every: int, cfg: FilterConfig) -> dict:
     t_fix = t_imu = t_est = 0
     n_fix = n_imu = n_est = 0
     j = 0
-    clock = time.perf_counter_ns
+    clock = time.thread_time_ns  # CPU time of this thread: waiting for a busy CPU is not counted
     for k, (t_ns, g, ax, ay, w) in enumerate(imu.rows()):
         while j < len(arrivals) and arrivals[j][0] < t_ns:
             c0 = clock()

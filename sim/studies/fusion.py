@@ -159,6 +159,7 @@ class RunTrace:
     stats: dict = field(default_factory=dict)  # rsu -> (n,) drift statistic
     flags: dict = field(default_factory=dict)  # rsu -> [s since start at which it was flagged]
     final: dict = field(default_factory=dict)  # rsu -> RsuAssessment at the end
+    plain_counters: dict | None = None  # the plain filter's outcome counts (with per_source)
 
 
 def _feed(filters, imu_rows, arrivals, out_every: int, t_out_ns: list, on_output=None):
@@ -272,7 +273,7 @@ def run_once(inp: RunInput, fixes: list[Fix], latency_ms: float, jitter_ms: floa
     dx = _pose_array(outs[-1])[0] if dead is None else dead
     tt, offsets, stats = trust.series()
     return RunTrace(t, truth, fx, fc, nx, dx, fused.counters(), delays, px, tt, offsets, stats, trust.flags,
-                    fused.rsu_assessments())
+                    fused.rsu_assessments(), filters[2].counters() if plain else None)
 
 
 def _errors(est: np.ndarray, truth: np.ndarray):
@@ -314,7 +315,8 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
         config: FilterConfig | None = None, fix_source=None, plots: bool = True, log=print,
         progress: bool = True, faults: dict[str, RsuFault] | None = None) -> dict:
     """The study. Returns the results dict also written to out_dir/results.json. `route`: one of
-    ROUTES, or several separated by commas (the runs drive them in turn)."""
+    ROUTES, or several separated by commas (the runs drive them in turn). `plots`: True, False, or
+    "trust" (only the offset and drift figures of the faulted case)."""
     t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -397,7 +399,7 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
     if plots:
         from sim.studies.fusion_plots import plots as make_plots
 
-        results["figures"] = make_plots(out, per_case, results, settle_s, inputs, faults)
+        results["figures"] = make_plots(out, per_case, results, settle_s, inputs, faults, trust_only=plots == "trust")
     (out / "results.json").write_text(json.dumps(results, indent=2, default=_json_default))
     results["runtime_s"] = time.perf_counter() - t_start
     return results
@@ -495,7 +497,7 @@ def _trust_summary(traces: list[RunTrace], inputs: list[RunInput], faults: dict[
     """Per RSU: the final offset estimates against the injected offset, drift flags and when they came,
     false flags (RSUs flagged without an injected drift)."""
     rsus = sorted({r for tr in traces for r in tr.final} | set(faults))
-    offsets, flagged = {}, {}
+    offsets, flagged, used = {}, {}, {}
     false_flags = false_flag_runs = 0
     for rsu in rsus:
         fault = faults.get(rsu, RsuFault())
@@ -535,10 +537,24 @@ def _trust_summary(traces: list[RunTrace], inputs: list[RunInput], faults: dict[
             false_flags += int(sum(len(t) for t in times))
             false_flag_runs += int(sum(bool(t) for t in times))
         flagged[rsu] = entry
+        used[rsu] = {"fused": _applied_fraction([tr.counters for tr in traces], rsu)}
+        if traces and traces[0].plain_counters is not None:
+            used[rsu]["plain"] = _applied_fraction([tr.plain_counters for tr in traces], rsu)
     hours = sum(inp.traj.duration for inp in inputs) / 3600.0
-    return {"offset_estimate_ms": offsets, "drift_flagged": flagged, "false_flags": false_flags,
+    return {"offset_estimate_ms": offsets, "drift_flagged": flagged, "fixes_applied_fraction": used,
+            "false_flags": false_flags,
             "false_flag_runs": false_flag_runs, "false_flags_per_hour": false_flags / hours if hours else None,
             "hours_of_data": hours}
+
+
+def _applied_fraction(counters: list[dict], rsu: str) -> float | None:
+    """Share of an RSU's fixes a filter applied (accepted, re-acquired or started from), over runs."""
+    applied = total = 0
+    for c in counters:
+        per = c.get("per_source", {}).get(rsu, {})
+        total += sum(per.values())
+        applied += sum(per.get(k, 0) for k in ("accepted", "reacquired", "initialized"))
+    return applied / total if total else None
 
 
 def _verdicts(results: dict, faults: dict[str, RsuFault]) -> dict:
@@ -583,7 +599,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what the filter does with a flagged RSU's fixes (default: the filter's, downweight)")
     p.add_argument("--fixes", default="study", choices=("study", "live"),
                    help="fix error model: the study's (default) or the live pipeline")
-    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--plots", choices=("all", "trust", "none"), default="all",
+                   help="figures to write: all (default), trust (with faults: the offset and drift figures only), none")
+    p.add_argument("--no-plots", action="store_true", help="the same as --plots none")
     return p
 
 
@@ -610,7 +628,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         faults = faults_from_options(a.clock_offset_ms, a.capture_latency_ms, a.drift_deg)
         cfg = FilterConfig() if a.flagged is None else FilterConfig(flagged_policy=a.flagged)
-        res = run(a.out, lats, a.jitter_ms, a.seed, runs=a.runs, n_rsu=a.rsus, route=a.route, plots=not a.no_plots,
+        plots = False if a.no_plots or a.plots == "none" else ("trust" if a.plots == "trust" and faults else True)
+        res = run(a.out, lats, a.jitter_ms, a.seed, runs=a.runs, n_rsu=a.rsus, route=a.route, plots=plots,
                   faults=faults, config=cfg)
     except InputError as e:
         return report("eval fusion", e)
@@ -646,9 +665,12 @@ def _print_faulted(res: dict) -> None:
         print(f"  {k:>4} ms: fused {r['fused_pos_rms_m'] * 100:.2f} cm = {r['fused_over_fault_free']:.2f}x fault-free "
               f"(offsets not estimated: {r['plain_over_fault_free']:.2f}x); false flags {r['false_flags']}")
         for rsu, o in r["offset_estimate_ms"].items():
+            u = r["fixes_applied_fraction"].get(rsu, {})
+            share = "" if u.get("plain") is None else (f"; its fixes applied {100 * u['fused']:.0f} % "
+                                                      f"(offsets not estimated: {100 * u['plain']:.0f} %)")
             print(f"     {rsu}: offset {o['final_ms_mean']:6.1f} ± {o['sigma_ms_mean']:.1f} ms (injected "
                   f"{o['injected_ms']:g}; |error| max {o['error_ms_max']:.1f} ms, within 3 ms in "
-                  f"{100 * o['within_3ms']:.0f} % of runs)")
+                  f"{100 * o['within_3ms']:.0f} % of runs{share})")
         for rsu, d in r["drift_flagged"].items():
             if d["injected"] or d["runs_flagged"]:
                 when = "" if not d["injected"] else (f"; after the bus came into view: median "

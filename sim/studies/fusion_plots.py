@@ -21,15 +21,16 @@ def _save(fig, out: Path, name: str, files: list[str]) -> None:
     files.append(p.name)
 
 
-def plots(out: Path, per_case, results, settle_s, inputs, faults) -> list[str]:
+def plots(out: Path, per_case, results, settle_s, inputs, faults, trust_only: bool = False) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
     files: list[str] = []
     per_lat = per_case["fault_free"]
-    _error_vs_latency(out, per_lat, results, files)
-    _trajectory(out, per_lat, results, settle_s, inputs, files)
-    _nees(out, per_lat, results, settle_s, inputs, files)
+    if not trust_only:
+        _error_vs_latency(out, per_lat, results, files)
+        _trajectory(out, per_lat, results, settle_s, inputs, files)
+        _nees(out, per_lat, results, settle_s, inputs, files)
     if faults:
         _offsets(out, per_case, results, inputs, faults, files)
         _drift(out, per_case, results, settle_s, inputs, faults, files)
@@ -211,7 +212,7 @@ def _drift(out, per_case, results, settle_s, inputs, faults, files):
     a1.set_title(f"{describe(faults)}; fixes {lat:.0f} ms late", fontsize=8)
     tr = bad[0]
     for i, (rsu, stat) in enumerate(sorted(tr.stats.items())):
-        a2.plot(tr.trust_t, stat, color=f"C{i}", lw=1, label=rsu + (" (drift injected)" if rsu in faults and
+        a2.plot(tr.trust_t, np.maximum(stat, 0.1), color=f"C{i}", lw=1, label=rsu + (" (drift injected)" if rsu in faults and
                                                                       faults[rsu].drift is not None else ""))
         for ft in tr.flags.get(rsu, []):
             a2.axvline(ft, color=f"C{i}", ls="--", lw=1)
@@ -221,7 +222,8 @@ def _drift(out, per_case, results, settle_s, inputs, faults, files):
     for rsu, f in faults.items():
         if f.drift is not None:
             a2.axvspan(f.drift.at_s, f.drift.at_s + max(f.drift.ramp_s, 0.05), color="r", alpha=0.1)
-    a2.set_yscale("symlog", linthresh=1.0)
+    a2.set_yscale("log")
+    a2.set_ylim(bottom=0.1)
     a2.set_xlabel("time [s]")
     a2.set_ylabel("drift statistic T (chi-square, 3 dof)")
     a2.set_title("drift detector, run 1 (dashed: flagged)", fontsize=8)

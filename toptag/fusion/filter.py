@@ -156,6 +156,7 @@ class FilterConfig(BaseModel):
     drift_min_fixes: float = Field(default=10.0, ge=1)  # effective number of fixes before a flag
     drift_max_offset_sigma_ms: float = Field(default=10.0, gt=0)  # no flag while the RSU's offset is this uncertain
     drift_min_others: int = Field(default=2, ge=1)  # other RSUs seeing the bus meanwhile, to tell who is wrong
+    drift_clip_sigma: float = Field(default=10.0, gt=0)  # one fix's innovation counts at most this many sigmas
     flagged_policy: Literal["downweight", "refuse"] = "downweight"
     flagged_cov_scale: float = Field(default=4.0, ge=1)  # downweight: R -> scale * (R + bias bias^T)
     # health
@@ -221,7 +222,7 @@ class BusFilter:
         self._calm_stat = chi2_3dof(c.drift_clear_probability)
         self._drift = DriftRule(c.drift_window_s, chi2_3dof(1.0 - c.drift_false_alarm),
                                 chi2_3dof(c.drift_clear_probability), c.drift_min_pos_m,
-                                math.radians(c.drift_min_yaw_deg), c.drift_isolation_ratio, chi2_3dof(0.99),
+                                math.radians(c.drift_min_yaw_deg), c.drift_isolation_ratio, c.drift_clip_sigma ** 2,
                                 c.drift_min_fixes, c.drift_max_offset_sigma_ms * 1e-3, c.drift_min_others) \
             if c.drift_detection else None
         # RSUs remembered from a previous filter (their offsets and flags), in the start-up step.
@@ -560,15 +561,18 @@ class BusFilter:
         xn[ST_YAW] = wrap_angle(th + w * dt)
         xn[ST_SPEED] = v + a * dt
         n = len(x)
-        F = _eye(n).copy()
-        F[ST_X, ST_YAW] = -d * s
-        F[ST_X, ST_SPEED] = dt * c
-        F[ST_X, ST_YAW_RATE] = -d * s * 0.5 * dt
-        F[ST_Y, ST_YAW] = d * c
-        F[ST_Y, ST_SPEED] = dt * s
-        F[ST_Y, ST_YAW_RATE] = d * c * 0.5 * dt
-        F[ST_YAW, ST_YAW_RATE] = dt
-        Pn = F @ P @ F.T
+        # F is the identity but for its rows x, y, yaw (Fr): F P F^T by rows then columns, O(n²)
+        Fr = _eye(n)[:3].copy()
+        Fr[ST_X, ST_YAW] = -d * s
+        Fr[ST_X, ST_SPEED] = dt * c
+        Fr[ST_X, ST_YAW_RATE] = -d * s * 0.5 * dt
+        Fr[ST_Y, ST_YAW] = d * c
+        Fr[ST_Y, ST_SPEED] = dt * s
+        Fr[ST_Y, ST_YAW_RATE] = d * c * 0.5 * dt
+        Fr[ST_YAW, ST_YAW_RATE] = dt
+        Pn = P.copy()
+        Pn[:3] = Fr @ P
+        Pn[:, :3] = Pn @ Fr.T
         Pn[ST_X, ST_X] += self._q_pos * dt
         Pn[ST_Y, ST_Y] += self._q_pos * dt
         Pn[ST_YAW, ST_YAW] += self._q_yaw * dt
@@ -626,8 +630,9 @@ class BusFilter:
             K[freeze] = 0.0
         xn = x + K @ nu
         xn[ST_YAW] = wrap_angle(xn[ST_YAW])
-        A = _eye(len(x)) - K @ H
-        Pn = A @ P @ A.T + K @ R @ K.T
+        # Joseph form (I - KH) P (I - KH)^T + K R K^T, expanded: O(n² m) for m measurements
+        KPHt = K @ PHt.T
+        Pn = P - KPHt - KPHt.T + K @ S @ K.T
         return xn, 0.5 * (Pn + Pn.T)
 
     # ------------------------------------------------------------------ time offsets
@@ -696,8 +701,10 @@ class BusFilter:
                                            i if flagged else None)
         if outcome is not FixOutcome.UNCONFIRMED and not (g.mode == ACQUIRING and not outcome.applied):
             g2, flagged_now = self._observe(g2, fix, nu, HPHt, offset_before)
-            if flagged_now and not flagged and i is not None:
-                x, P = self._restore_offset(x, P, i, g2.rsus[rsu].calm_offset, self._offset_prior(fix))
+            if flagged_now and not flagged:
+                x, P = self._distrust(x, P, i, g2.rsus[rsu], self._offset_prior(fix))
+                # The others were judged against a filter that followed this RSU: they start afresh.
+                g2 = g2._replace(rsus=MappingProxyType({k: (r if k == rsu else r.restart()) for k, r in g2.rsus.items()}))
         return x, P, g2, outcome, d2, flagged
 
     def _gate(self, x, P, g: _Gate, fix: Fix, arrival_ns, H, nu, PHt, HPHt, off_var, rec, freeze):
@@ -709,7 +716,7 @@ class BusFilter:
         if rec is not None and rec.flagged:
             if self.cfg.flagged_policy == "refuse":
                 return x, P, g, FixOutcome.REFUSED_FLAGGED, float("nan")
-            m, _ = rec.bias()
+            m = rec.disagreement()
             R_gate = R + np.outer(m, m)
             R = self.cfg.flagged_cov_scale * R_gate
         delay = None if arrival_ns is None else arrival_ns - fix.t_ns
@@ -756,35 +763,40 @@ class BusFilter:
         rsu = fix.source
         rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
         rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
-        if offset_before is not None and not rec.flagged and rec.stat < self._calm_stat:
+        agrees = (rec.deviation_stat if rec.deviation is not None else rec.stat) < self._calm_stat
+        if offset_before is not None and not rec.flagged and agrees:
             rec = rec._replace(calm_offset=offset_before)
         rsus = dict(g.rsus)
         healthy = g.mode == TRACKING and g.last_accept_ns is not None and \
             fix.t_ns - g.last_accept_ns <= self._healthy_ns
         if self._drift is not None and healthy:
-            rec = self._drift.accumulate(rec, fix.t_ns, nu, HPHt + fix.cov)
-            rsus[rsu] = rec
+            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, HPHt + fix.cov)
             sd = 0.0 if offset_before is None else math.sqrt(max(offset_before[1], 0.0))
-            rec = rec._replace(flagged_since=self._drift.decide(rsus, rsu, fix.t_ns, sd))
+            rec = self._drift.decide(rsus, rsu, fix.t_ns, sd)
         else:
             rec = rec._replace(last_t=fix.t_ns)
         rsus[rsu] = rec
         return g._replace(rsus=MappingProxyType(rsus)), rec.flagged
 
     @staticmethod
-    def _restore_offset(x, P, i: int, calm, prior_var: float):
-        """A newly flagged RSU's time offset goes back to its calm value (before its fixes began to
-        disagree) with its prior's variance, as an estimate of its own (its correlations dropped):
-        what its fixes taught since may have been the drift. While it is flagged that variance
-        widens its innovations along the track, so only a disagreement an offset cannot explain
-        keeps it flagged, and once cleared the offset is learnt again."""
+    def _distrust(x, P, i: int | None, rec: RsuRecord, prior_var: float):
+        """What the filter took from a newly flagged RSU is suspect. Its pose is widened by the other
+        RSUs' mean disagreement with it (large when the filter followed the flagged one, e.g. from
+        its start), so that they can pull it back; the RSU's time offset goes back to its calm value
+        (before its fixes began to disagree) with its prior's variance, as an estimate of its own (its
+        correlations dropped): what its fixes taught since may have been the drift. While it is
+        flagged that variance widens its innovations along the track and the offset is held, and
+        once cleared it is learnt again."""
         x, P = x.copy(), P.copy()
-        var = max(float(P[i, i]), prior_var)
-        if calm is not None:
-            x[i] = calm[0]
-        P[i, :] = 0.0
-        P[:, i] = 0.0
-        P[i, i] = var
+        if rec.others_mean is not None:
+            P[:3, :3] += np.diag(rec.others_mean ** 2)
+        if i is not None:
+            var = max(float(P[i, i]), prior_var)
+            if rec.calm_offset is not None:
+                x[i] = rec.calm_offset[0]
+            P[i, :] = 0.0
+            P[:, i] = 0.0
+            P[i, i] = var
         return x, P
 
     def _window(self, cands: tuple, t_ns: int) -> tuple:
@@ -872,11 +884,12 @@ class BusFilter:
                 var += self._q_d * max(0.0, s_from_ns(head.t - rec.offset_t))
             else:
                 off = var = None
-            m, C = rec.bias()
+            d, C = rec.disagreement(), rec.bias()[1]
+            stat = rec.deviation_stat if rec.deviation is not None else rec.stat
             out[rsu] = RsuAssessment(
                 rsu, off, None if var is None else math.sqrt(max(var, 0.0)), rec.clock_known, rec.flagged,
-                rec.flagged_since, (float(m[0]), float(m[1]), float(m[2])),
-                tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(C)), float(rec.stat), int(rec.last_t),
+                rec.flagged_since, (float(d[0]), float(d[1]), float(d[2])),
+                tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(C)), float(stat), int(rec.last_t),
                 dict(per_src.get(rsu, {})), self.cfg.flagged_policy)
         return out
 

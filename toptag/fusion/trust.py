@@ -1,36 +1,43 @@
 """Which RSUs the bus filter trusts: each RSU's record of disagreement, the drift detector that flags
-a camera whose fixes disagree persistently with the other RSUs and the filter, and the assessment of
+a camera whose fixes disagree persistently with the other RSUs' and the filter, and the assessment of
 every RSU the filter reports (time offset, flag, disagreement, fix counts).
 
-The detector. A consistent filter's innovations (fix minus prediction, nu, with covariance S) are
-white. A turned camera or a moved pole adds a bias to every fix of its RSU, so that RSU's innovations
-keep one sign. Per RSU the filter accumulates, with exponential forgetting over `window_s` (w =
-exp(-dt / window_s) between two fixes of that RSU)::
+The evidence. A consistent filter's innovations (fix minus prediction, nu, with covariance S) are
+white. A turned camera or a moved pole adds a bias to every fix of its RSU. Per RSU the filter
+accumulates, with exponential forgetting over `window_s` (w = exp(-dt / window_s) between two fixes
+of that RSU)::
 
     A = sum w S^-1,    A2 = sum w^2 S^-1,    b = sum w S^-1 nu
-    bias m = A^-1 b (the weighted mean innovation: fix minus filter, in x, y, yaw)
-    T = b' A2^-1 b    (chi-square, 3 dof, for white innovations: A2 is the covariance of b)
+    m = A^-1 b          the weighted mean innovation (its fixes minus the filter, in x, y, yaw)
+    C = A^-1 A2 A^-1    the covariance of m for white innovations
+    T = b' A2^-1 b      chi-square, 3 dof: how persistent its disagreement with the filter is
 
-A single wild fix cannot do it: nu is clipped to the gate's Mahalanobis radius before it enters b.
-An RSU is flagged when
-  - T exceeds the chi-square quantile of `false_alarm` (a test of persistence) over at least
-    `min_fixes` fixes (effective count (sum w)^2 / sum w^2: a few wild fixes are not persistence), and
-  - its time offset is known to `max_offset_sigma_s` (until then the filter is still learning what
-    part of its disagreement is a late clock: an offset looks like a bias along the track), and
-  - the bias is larger than the calibration's accuracy (`min_pos_m` in position or `min_yaw_rad` in
-    yaw: a bias that small is calibration error, not drift), and
-  - at least `min_others` other, unflagged RSUs have sent fixes within the window (with one other
-    the disagreement is symmetric: nobody can tell who is wrong), and its T is at least
-    `isolation_ratio` times each of theirs: the filter follows every RSU a little, so the others see
-    a share of one RSU's bias; the one that turned sees most of it.
-Innovations enter only while the filter is healthy (tracking, a fix applied within the last second):
-a starved or re-acquiring filter is no reference to judge an RSU by.
-It is cleared when, over at least `min_fixes` fixes again, T falls below the `clear_probability`
-quantile (old evidence fades with the window: a camera seen agreeing on the next pass is cleared
-within a second or two).
-While flagged, its fixes are down-weighted (covariance scaled and the bias added to it) or refused
-(`FilterConfig.flagged_policy`); the statistic keeps running on the unweighted innovation so the
-flag clears after a recalibration.
+A single wild fix cannot do much: nu is clipped to a Mahalanobis radius (`clip_sigma`, 10) before it
+enters b, so it weighs like a 10-sigma fix at most.
+
+The test. The filter follows every RSU a little, and it may follow a wrong one a lot (it starts
+from whichever RSU sees the bus first: if that camera is turned, the others look wrong to it). So an
+RSU is judged against the other RSUs, through the filter: its deviation from the others is
+d = m - mean(m of the others), with covariance C + sum(C of the others) / k², and T_d = d' (..)^-1 d
+(the filter's own error, common to all, cancels). An RSU is flagged when
+  - at least `min_others` other, unflagged RSUs have enough recent fixes (with one other the
+    disagreement is symmetric: nobody can tell who is wrong),
+  - T_d exceeds the chi-square quantile of `false_alarm`, over at least `min_fixes` of its fixes
+    (effective count (sum w)^2 / sum w^2: a few wild fixes are not persistence),
+  - |d| is larger than the calibration's accuracy (`min_pos_m` in position or `min_yaw_rad` in
+    yaw: a bias that small is calibration error, not drift),
+  - its time offset is known to `max_offset_sigma_s` (an offset being learnt looks like a bias
+    along the track), and
+  - the others agree among themselves: each one's deviation from the rest (without this RSU) has a
+    T_d at most 1 / `isolation_ratio` of this RSU's.
+It is cleared when, over at least `min_fixes` fixes again and with the others in view, T_d falls
+below the `clear_probability` quantile (old evidence fades with the window: a camera seen agreeing on
+the next pass is cleared within a second or two).
+Innovations enter only while the filter is healthy (tracking, a fix applied within the last second).
+While an RSU is flagged its fixes are down-weighted (covariance scaled and d d' added) or refused
+(`FilterConfig.flagged_policy`); the filter, if it was following it, widens its pose by the others'
+mean disagreement so that they can pull it back, and the others' evidence, gathered against that
+filter, starts afresh (toptag.fusion.filter).
 
 Pure: no I/O. Records are immutable (copy-on-write): the filter keeps one set per buffered step and
 re-derives them on re-propagation, so an out-of-order replay ends with the same flags."""
@@ -52,7 +59,7 @@ class RsuRecord(NamedTuple):
     A: np.ndarray | None = None
     A2: np.ndarray | None = None
     b: np.ndarray | None = None
-    stat: float = 0.0
+    stat: float = 0.0  # T: persistence of its disagreement with the filter
     n_eff: float = 0.0  # effective number of fixes in the statistic
     flagged_since: int | None = None
     # Its time offset (s) and variance (s²) when it had no slot in the state (given up, or carried
@@ -61,25 +68,37 @@ class RsuRecord(NamedTuple):
     offset_t: int | None = None
     sums: tuple[float, float] = (0.0, 0.0)  # sum w, sum w^2 (for n_eff)
     calm_offset: tuple[float, float] | None = None  # its offset (s, s²) when it last agreed
-
-    @property
-    def _sw(self) -> float:
-        return self.sums[0]
-
-    @property
-    def _sw2(self) -> float:
-        return self.sums[1]
+    m: np.ndarray | None = None  # mean innovation (x, y, yaw)
+    C: np.ndarray | None = None  # its covariance
+    deviation: np.ndarray | None = None  # d: m minus the others' mean, at its last decision
+    deviation_stat: float = 0.0  # T_d
+    others_mean: np.ndarray | None = None  # the others' mean innovation then
 
     @property
     def flagged(self) -> bool:
         return self.flagged_since is not None
 
     def bias(self) -> tuple[np.ndarray, np.ndarray]:
-        """(m, C): the weighted mean innovation (x, y, yaw) and its covariance (zeros before any fix)."""
-        if self.A is None:
+        """(m, C): its mean innovation and covariance (zeros before any fix)."""
+        if self.m is None:
             return np.zeros(3), np.zeros((3, 3))
-        Ai = np.linalg.inv(self.A)
-        return Ai @ self.b, Ai @ self.A2 @ Ai
+        return self.m, self.C
+
+    def restart(self) -> RsuRecord:
+        """The record without its evidence (its flag, clock and offsets kept)."""
+        return self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None,
+                             deviation=None, deviation_stat=0.0, others_mean=None)
+
+    def disagreement(self) -> np.ndarray:
+        """Its disagreement: the deviation from the other RSUs when known, else from the filter."""
+        return self.deviation if self.deviation is not None else self.bias()[0]
+
+
+def _chi2(d: np.ndarray, C: np.ndarray) -> float:
+    try:
+        return float(d @ np.linalg.solve(C, d))
+    except np.linalg.LinAlgError:
+        return 0.0
 
 
 @dataclass(frozen=True)
@@ -107,31 +126,48 @@ class DriftRule:
         else:
             w = math.exp(-max(0, t_ns - rec.last_t) * 1e-9 / self.window_s)
             A, A2, b = w * rec.A + Si, (w * w) * rec.A2 + Si, w * rec.b + Si @ nu
-            sw, sw2 = w * rec._sw + 1.0, w * w * rec._sw2 + 1.0
-        stat = float(b @ np.linalg.solve(A2, b))
-        return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=stat, n_eff=sw * sw / sw2, sums=(sw, sw2))
+            sw, sw2 = w * rec.sums[0] + 1.0, w * w * rec.sums[1] + 1.0
+        Ai = np.linalg.inv(A)
+        return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=_chi2(b, A2), n_eff=sw * sw / sw2, sums=(sw, sw2),
+                            m=Ai @ b, C=Ai @ A2 @ Ai)
 
-    def _large(self, m: np.ndarray) -> bool:
-        return math.hypot(m[0], m[1]) > self.min_pos_m or abs(m[2]) > self.min_yaw_rad
+    def _large(self, d: np.ndarray) -> bool:
+        return math.hypot(d[0], d[1]) > self.min_pos_m or abs(d[2]) > self.min_yaw_rad
 
-    def decide(self, records: dict[str, RsuRecord], rsu: str, t_ns: int, offset_sigma_s: float = 0.0) -> int | None:
-        """The flag of `rsu` (its flagged_since, or None) after its record was updated at t_ns;
-        `offset_sigma_s`: the uncertainty of its time offset now."""
+    @staticmethod
+    def _deviation(rec: RsuRecord, others: list[RsuRecord]) -> tuple[np.ndarray, float, np.ndarray]:
+        """(d, T_d, the others' mean) of one record against others."""
+        k = len(others)
+        mo = sum(o.m for o in others) / k
+        Co = sum(o.C for o in others) / (k * k)
+        d = rec.m - mo
+        return d, _chi2(d, rec.C + Co), mo
+
+    def decide(self, records: dict[str, RsuRecord], rsu: str, t_ns: int,
+               offset_sigma_s: float = 0.0) -> RsuRecord:
+        """The record of `rsu` (just updated at t_ns) with its deviation from the others and its flag
+        decided; `offset_sigma_s`: the uncertainty of its time offset now."""
         rec = records[rsu]
-        m, _ = rec.bias()
-        if rec.flagged:
-            if rec.stat < self.clear_stat and rec.n_eff >= self.min_fixes:
-                return None
-            return rec.flagged_since
-        if rec.stat <= self.flag_stat or rec.n_eff < self.min_fixes or offset_sigma_s > self.max_offset_sigma_s \
-                or not self._large(m):
-            return None
         window_ns = self.window_s * 1e9
-        others = [o for k, o in records.items()
-                  if k != rsu and not o.flagged and o.A is not None and t_ns - o.last_t <= window_ns]
-        if len(others) < self.min_others or any(rec.stat < self.isolation_ratio * o.stat for o in others):
-            return None
-        return t_ns
+        others = {k: o for k, o in records.items()
+                  if k != rsu and not o.flagged and o.m is not None and t_ns - o.last_t <= window_ns
+                  and o.n_eff >= self.min_fixes}
+        if len(others) < self.min_others or rec.m is None:
+            return rec  # nobody to compare with: the flag stays as it is
+        d, T_d, mo = self._deviation(rec, list(others.values()))
+        rec = rec._replace(deviation=d, deviation_stat=T_d, others_mean=mo)
+        if rec.flagged:
+            if T_d < self.clear_stat and rec.n_eff >= self.min_fixes:
+                return rec._replace(flagged_since=None)
+            return rec
+        if T_d <= self.flag_stat or rec.n_eff < self.min_fixes or offset_sigma_s > self.max_offset_sigma_s \
+                or not self._large(d):
+            return rec
+        for k, o in others.items():  # do the others agree among themselves (without this RSU)?
+            rest = [x for j, x in others.items() if j != k]
+            if rest and self.isolation_ratio * self._deviation(o, rest)[1] > T_d:
+                return rec
+        return rec._replace(flagged_since=t_ns)
 
 
 @dataclass(frozen=True)
@@ -143,9 +179,9 @@ class RsuAssessment:
     clock_known: bool  # its fixes say how its clock is disciplined (a bound on the offset)
     flagged: bool
     flagged_since_ns: int | None
-    disagreement: tuple[float, float, float]  # mean innovation (x m, y m, yaw rad): its fixes minus the filter
+    disagreement: tuple[float, float, float]  # its fixes minus the other RSUs' (x m, y m, yaw rad), through the filter
     disagreement_sigma: tuple[float, float, float]
-    statistic: float  # chi-square (3 dof) of the disagreement's persistence
+    statistic: float  # chi-square (3 dof) of the disagreement (T_d; T before others were in view)
     last_fix_ns: int
     fixes: dict[str, int] = field(default_factory=dict)  # outcome -> count (final decisions)
     policy: str = "downweight"
