@@ -246,7 +246,7 @@ class RsuDiagnosis(Message):
     while the bus hears from it (toptag.fusion.trust.RsuAssessment): the RSU's time offset as the bus
     estimates it (capture stamp minus exposure, in the bus's time; clock offset plus unmodelled capture
     latency), whether the bus flags its camera for drift, and by how much its fixes disagree with the
-    other RSUs and the fused track. The RSU shows it in its RsuStatus; `advice` says what to do."""
+    other RSUs' (through the fused track). The RSU shows it in its RsuStatus; `advice` says what to do."""
 
     TYPE: ClassVar[str] = "rsu_diagnosis"
     type: Literal["rsu_diagnosis"] = "rsu_diagnosis"
@@ -259,9 +259,10 @@ class RsuDiagnosis(Message):
     clock_known: bool = Field(default=False, description="the RSU's fixes said how its clock is disciplined")
     drift_flagged: bool = False
     flagged_since_ns: TimeNs | None = None
-    disagreement_m: float = Field(default=0.0, ge=0, description="mean horizontal disagreement of its fixes, m")
-    disagreement_yaw_rad: float = Field(default=0.0, description="mean yaw disagreement (its fixes minus the track)")
-    disagreement_statistic: float = Field(default=0.0, ge=0, description="chi-square (3 dof) of its persistence")
+    disagreement_m: float = Field(default=0.0, ge=0, description="horizontal disagreement of its fixes with the "
+                                                                 "other RSUs' (through the fused track), m")
+    disagreement_yaw_rad: float = Field(default=0.0, description="yaw disagreement: its fixes minus the others'")
+    disagreement_statistic: float = Field(default=0.0, ge=0, description="chi-square (3 dof) of the disagreement")
     fixes_accepted: Count = 0
     fixes_gated: Count = 0
     fixes_refused: Count = Field(default=0, description="refused because the RSU is flagged")

@@ -106,35 +106,35 @@ def seen_pose(surveyed: Camera, actual: Camera, x: float, y: float, yaw: float, 
     return float(cx), float(cy), float(math.remainder(yaw + turn, 2 * math.pi))
 
 
-def parse_ms(text: str, option: str) -> dict[str, float]:
-    """'rsu-se=30,rsu-ne=-12.5' -> {'rsu-se': 30.0, 'rsu-ne': -12.5}; InputError naming the option."""
-    out: dict[str, float] = {}
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        rsu, eq, value = part.partition("=")
-        try:
-            if not eq or not rsu.strip():
-                raise ValueError
-            out[rsu.strip()] = float(value)
-        except ValueError:
-            raise InputError(f"{option}: expected RSU=MS[,RSU=MS], got {part!r}") from None
-    return out
-
-
-def parse_drift(text: str, option: str = "--drift-deg") -> dict[str, Drift]:
-    """'rsu-se=0.2@30,rsu-ne=0.5@10/60' -> a step of 0.2 deg at 30 s on rsu-se, a ramp of 0.5 deg over
-    60 s from 10 s on rsu-ne (yaw)."""
-    out: dict[str, Drift] = {}
+def _per_rsu(text: str, option: str, form: str, value):
+    """'RSU=VALUE,RSU=VALUE' -> {RSU: value(VALUE)}; InputError naming the option and the form."""
+    out = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
         rsu, eq, rest = part.partition("=")
         try:
             if not eq or not rsu.strip():
                 raise ValueError
-            deg, _, when = rest.partition("@")
-            at, _, ramp = when.partition("/")
-            out[rsu.strip()] = Drift(yaw_deg=float(deg), at_s=float(at or 0.0), ramp_s=float(ramp or 0.0))
+            out[rsu.strip()] = value(rest)
         except ValueError:
-            raise InputError(f"{option}: expected RSU=DEG[@T[/RAMP]][,...], got {part!r}") from None
+            raise InputError(f"{option}: expected {form}, got {part!r}") from None
     return out
+
+
+def parse_ms(text: str, option: str) -> dict[str, float]:
+    """'rsu-se=30,rsu-ne=-12.5' -> {'rsu-se': 30.0, 'rsu-ne': -12.5}."""
+    return _per_rsu(text, option, "RSU=MS[,RSU=MS]", float)
+
+
+def _drift(text: str) -> Drift:
+    deg, _, when = text.partition("@")
+    at, _, ramp = when.partition("/")
+    return Drift(yaw_deg=float(deg), at_s=float(at or 0.0), ramp_s=float(ramp or 0.0))
+
+
+def parse_drift(text: str, option: str = "--drift-deg") -> dict[str, Drift]:
+    """'rsu-se=0.2@30,rsu-ne=0.5@10/60' -> a step of 0.2 deg at 30 s on rsu-se, a ramp of 0.5 deg over
+    60 s from 10 s on rsu-ne (yaw)."""
+    return _per_rsu(text, option, "RSU=DEG[@T[/RAMP]][,...]", _drift)
 
 
 def faults_from_options(clock_offset_ms: str | None = None, capture_latency_ms: str | None = None,
