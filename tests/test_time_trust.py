@@ -118,6 +118,49 @@ def test_rsu_offsets_are_estimated_within_3ms_in_one_pass(turn, spec):
     assert h.unknown_clock == n_unknown > 0
 
 
+
+def _unknown_clocks(fixes):
+    return [Fix(f.t_ns, f.x, f.y, f.yaw, f.cov, f.source, f.seq, clock_bound_ns=None) for f in fixes]
+
+
+def test_with_no_clock_known_the_first_rsu_is_the_time_reference(turn):
+    """Every RSU's clock unknown (recordings that do not say, hosts without chrony): their common
+    offset is seen only through the bus's turns, so the filter follows the first RSU's time and
+    estimates the others' against it; one 30 ms RSU is still found, and the track is as good as
+    with known clocks."""
+    traj, imu = turn
+    faults = faults_from_options(clock_offset_ms="rsu-se=30")
+    arr = arrivals(fixes_with(traj, faults), faults, jitter_ms=30)
+    errs = {}
+    for name, feed in (("known", arr), ("unknown", [(a, g) for (a, _), g in zip(arr, _unknown_clocks(f for _, f in arr))])):
+        flt, e = BusFilter(), []
+        drive(flt, imu, feed, on_output=lambda t, flt=flt, e=e: e.append(pos_err(flt.estimate(t), traj)))
+        errs[name] = math.sqrt(np.mean(np.square(e)))
+        if name == "unknown":
+            a = flt.rsu_assessments()
+            ref = [k for k, v in a.items() if 1e3 * v.offset_sigma_s <= 5.0 + 1e-6]
+            assert abs(1e3 * (a["rsu-se"].offset_s - np.mean([v.offset_s for k, v in a.items() if k != "rsu-se"]))
+                       - 30.0) < 3.0
+            assert ref and all(abs(1e3 * v.offset_s) < 10.0 for k, v in a.items() if k != "rsu-se")
+            assert flt.estimate().health.unknown_clock == len(feed)
+    assert errs["unknown"] < 1.3 * errs["known"] + 0.005, errs
+
+
+def test_a_known_clock_releases_the_time_reference_by_widening_it(turn):
+    """The reference's offset was held to the known-clock prior; once an RSU with a known clock takes
+    a slot, that variance is given back (an inflation: the offset's sigma grows, nothing shrinks)."""
+    traj, imu = turn
+    fixes = sorted(fixes_with(traj, {}), key=lambda f: f.t_ns)
+    first = next(f for f in fixes if f.source == "rsu-sw")
+    other = next(f for f in fixes if f.source != "rsu-sw" and f.t_ns > first.t_ns)
+    rows = [r for r in imu.rows() if r[0] <= other.t_ns + 20 * MS]
+    flt = BusFilter()
+    drive(flt, rows, [(first.t_ns + MS, _unknown_clocks([first])[0])])
+    before = flt.rsu_assessments()["rsu-sw"].offset_sigma_s
+    flt.add_fix(other, arrival_ns=rows[-1][0])
+    after = flt.rsu_assessments()["rsu-sw"].offset_sigma_s
+    assert 1e3 * before == pytest.approx(5.0, abs=0.5) and after > 2 * before  # (the new fix ties it again)
+
 def test_capture_latency_on_a_disciplined_clock_is_estimated_too(turn):
     traj, imu = turn
     faults = faults_from_options(capture_latency_ms="rsu-nw=25")

@@ -34,6 +34,9 @@ predicted as the pose at t - offset; through that model the offset's uncertainty
 innovation covariance by the motion it implies (speed x sigma along the track, yaw rate x sigma in
 yaw) and every fix refines the offset. At most `max_offset_slots` RSUs hold a slot; the one heard
 from least recently gives its slot up (its estimate is remembered and seeds it when it returns).
+The offsets' common part is seen only through the bus's turns and accelerations: while no RSU with a
+known clock holds a slot, the first unknown-clock RSU is the time reference (known-clock prior), and
+it is released, by an inflation, once one does (`_time_reference`).
 
 Trust (toptag.fusion.trust): every RSU's innovations feed a drift detector that flags an RSU whose
 fixes disagree persistently with the other RSUs and the filter (a turned camera, a moved pole);
@@ -188,6 +191,7 @@ class _Gate(NamedTuple):
     last_source: str | None = None
     clocks: tuple = ()  # RSUs holding a time-offset slot, in state order (index STATE_DIM + i)
     rsus: MappingProxyType | dict = _NO_RSUS  # RSU id -> toptag.fusion.trust.RsuRecord (copy-on-write)
+    time_ref: str | None = None  # the unknown-clock RSU whose time the filter follows while no clock is known
 
 
 class _Step:
@@ -642,6 +646,29 @@ class BusFilter:
             return self._var0_unknown
         return self._var0_known + (fix.clock_bound_ns * 1e-9) ** 2
 
+    def _time_reference(self, x, P, g: _Gate, fix: Fix) -> tuple[np.ndarray, np.ndarray, _Gate, bool]:
+        """Which time the filter follows. The offsets' common part is seen only through the bus's
+        accelerations and turns: with no RSU whose clock is known, it would wander within the unknown
+        clocks' prior (50 ms is 35 cm at 7 m/s). So while no RSU holding a slot has a known clock, the
+        first unknown-clock RSU is the time reference (its offset gets the known-clock prior; the others
+        are estimated against it). When an RSU with a known clock takes a slot, the reference is
+        released: the variance it was spared is given back to the common part of the unknown-clock
+        offsets and to the pose along the motion (P += dv u u', u = 1 on each unknown-clock offset and
+        the motion rate on the pose, as at start-up): an inflation, so the filter stays consistent.
+        Returns (x, P, gate, whether the new slot is the reference)."""
+        held = [k for k in g.clocks if k in g.rsus]
+        if fix.clock_bound_ns is None:
+            anchored = g.time_ref in g.clocks or any(g.rsus[k].clock_known for k in held)
+            return x, P, (g if anchored else g._replace(time_ref=fix.source)), not anchored
+        if g.time_ref not in g.clocks:
+            return x, P, g._replace(time_ref=None), False
+        u = np.zeros(len(x))
+        u[:3] = motion_rate(x)
+        for j, k in enumerate(g.clocks):
+            if k == g.time_ref or (k in g.rsus and not g.rsus[k].clock_known):
+                u[STATE_DIM + j] = 1.0
+        return x, P + (self._var0_unknown - self._var0_known) * np.outer(u, u), g._replace(time_ref=None), False
+
     def _add_slot(self, x, P, g: _Gate, fix: Fix):
         """Give fix.source a time-offset slot (appended to the state). RSUs not heard from for a while
         give theirs up first (least recently heard first) while the slots are full; an RSU's estimate
@@ -655,7 +682,9 @@ class BusFilter:
             keep = np.r_[0:i, i + 1:len(x)]
             x, P = x[keep], P[np.ix_(keep, keep)]
             del clocks[j]
-        var0, d0 = self._offset_prior(fix), 0.0
+        g = g._replace(clocks=tuple(clocks), rsus=MappingProxyType(rsus))
+        x, P, g, reference = self._time_reference(x, P, g, fix)
+        var0, d0 = (self._var0_known if reference else self._offset_prior(fix)), 0.0
         rec = rsus.get(fix.source)
         if rec is not None and rec.offset is not None:
             d, v = rec.offset
@@ -668,7 +697,7 @@ class BusFilter:
         Pn = np.zeros((n + 1, n + 1))
         Pn[:n, :n] = P
         Pn[n, n] = var0
-        return x, Pn, g._replace(clocks=tuple(clocks) + (fix.source,), rsus=MappingProxyType(rsus))
+        return x, Pn, g._replace(clocks=g.clocks + (fix.source,), rsus=MappingProxyType(rsus))
 
     # ------------------------------------------------------------------ gating
     def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None, accel: float):
