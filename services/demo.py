@@ -25,6 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", default=None, help="scenario file (default: the bundled two-bus demo)")
     p.add_argument("--duration", type=float, default=None, help="seconds to run (default 60; with --replay: "
                                                                  "seconds of the recording, default all of it)")
+    p.add_argument("--bus-config", default=None, metavar="BUS.toml",
+                   help="settings file for every bus (toptag bus --config; default: the scenario's bus_config)")
     p.add_argument("--report", default=None, help="write the JSON report here")
     p.add_argument("--logs", default=None, help="directory for each process's log (default: a temp dir)")
     p.add_argument("--period", type=float, default=2.0, help="seconds between progress tables")
@@ -68,8 +70,10 @@ def main(argv: list[str]) -> int:
     monitor = Monitor(session)
     rsus = [group.start(cam.stem, TOPTAG + ["rsu", "--camera", str(cam), "--intersection", scenario.intersection_id]
                         + client) for cam in scenario.camera_paths()]
+    bus_config = args.bus_config or scenario.bus_config
+    bus_settings = ["--config", str(bus_config)] if bus_config else []
     buses = [group.start(f"bus-{veh.stem}", TOPTAG + ["bus", "--vehicle", str(veh), "--map", str(scenario.map_path())]
-                         + client) for veh in scenario.vehicle_paths()]
+                         + bus_settings + client) for veh in scenario.vehicle_paths()]
     tools = []  # recorder and view: stopped after the services, before the router
     if args.record:
         tools.append(group.start("record", TOPTAG + ["record", "--out", args.record] + client

@@ -31,6 +31,9 @@ IMU, truth or GNSS is published for it. A bus's legs must not overlap in time.
 that RSU's frame stamps, a drift turns the camera the simulator renders with while the RSU keeps its
 surveyed camera file.
 
+`bus_config`: a bus settings file (services.bus.agent.BusSettings, TOML) that `toptag demo` passes to
+the scenario's buses (`toptag bus --config`), e.g. the drift detector's thresholds for the live pipeline.
+
 Errors: `load_scenario` raises toptag.inputs.InputError with one line naming the file and the field.
 """
 from __future__ import annotations
@@ -152,6 +155,8 @@ class Scenario(BaseModel):
     loop_gap_s: float = Field(default=3.0, gt=0, description="pause between the last leg end and the repeat")
     seed: int = Field(default=0, ge=0)
     faults: dict[str, RsuFault] = Field(default_factory=dict, description="per RSU id: injected faults")
+    bus_config: str | None = Field(default=None, description="bus settings file (toptag bus --config) that "
+                                                             "`toptag demo` gives the scenario's buses")
 
     @field_validator("rsus", mode="before")
     @classmethod
@@ -214,6 +219,7 @@ def load_scenario(path: str | Path) -> Scenario:
         "map": resolve(sc.map),
         "rsus": [r.model_copy(update={"camera": resolve(r.camera)}) for r in sc.rsus],
         "buses": [b.model_copy(update={"vehicle": resolve(b.vehicle)}) for b in sc.buses],
+        "bus_config": None if sc.bus_config is None else resolve(sc.bus_config),
     })
 
 

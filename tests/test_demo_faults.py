@@ -1,6 +1,7 @@
 """`toptag demo` on the demo site's faults scenario (toptag/data/demo/scenario-faults.json), as a user
-runs it: rsu-ne's clock is 40 ms off (and undisciplined), rsu-sw's camera is turned by 0.5 deg; every
-service is its own process. The demo runs until its live table shows bus-17's estimate of rsu-ne's
+runs it: rsu-ne's clock is 40 ms off (and undisciplined), rsu-sw's camera is turned by 1 deg; every
+service is its own process, the buses with the scenario's bus settings (the drift thresholds for the
+live pipeline, toptag/data/demo/bus-faults.toml). The demo runs until its live table shows bus-17's estimate of rsu-ne's
 offset settled and rsu-sw flagged for drift, then gets Ctrl-C; the report must carry the estimate
 near 40 ms and flags on rsu-sw only. The checks count outcomes and wait on what the table shows, never
 on the clock, so a busy machine only makes the test wait longer."""

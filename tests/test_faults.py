@@ -106,7 +106,12 @@ def test_a_ramp_turns_the_camera_gradually():
 def test_the_bundled_faults_scenario_loads():
     sc = load_scenario(DEMO / "scenario-faults.json")
     w = World(sc)
-    assert sc.faults["rsu-ne"].clock_offset_ms == 40 and sc.faults["rsu-sw"].drift.yaw_deg == 0.5
+    assert sc.faults["rsu-ne"].clock_offset_ms == 40 and sc.faults["rsu-sw"].drift.yaw_deg == 1.0
+    # its buses' settings: the drift thresholds for the live pipeline, a file that loads
+    from services.bus.agent import BusSettings
+    from toptag.settings import load_settings
+    f = load_settings(sc.bus_config, BusSettings).filter
+    assert (f.drift_min_pos_m, f.drift_min_yaw_deg) == (0.10, 0.3)
     assert not w.faults[w.rsu_ids.index("rsu-ne")].clock_disciplined
     assert w.faults[w.rsu_ids.index("rsu-se")] == RsuFault()
 
