@@ -425,7 +425,7 @@ def test_slow_rendering_skips_ticks_and_never_drifts(tmp_path, zenoh_session, fr
     inbox = Inbox()
     sub = subscribe_messages(sub_side, keys.frame("rsu-sw"), Frame, inbox)
 
-    def slow_render(rsu, t_ns):
+    def slow_render(rsu, t_ns, camera=None):
         time.sleep(0.25)
         return b"\xff\xd8 not really a jpeg \xff\xd9"
 

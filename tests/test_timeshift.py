@@ -12,7 +12,9 @@ pytestmark = pytest.mark.unit
 TIMESTAMPS = {  # every timestamp field of every message type (nested ones by path)
     "Approach": {"reference_time_ns", "position.t_ns"}, "Leave": {"reference_time_ns"},
     "ActiveSessions": {"reference_time_ns", "sessions.0.reference_time_ns", "sessions.0.position.t_ns"},
-    "PoseFix": {"capture_time_ns", "publish_time_ns"}, "RsuStatus": {"reference_time_ns", "started_ns"},
+    "PoseFix": {"capture_time_ns", "publish_time_ns"},
+    "RsuStatus": {"reference_time_ns", "started_ns", "diagnoses.0.reference_time_ns", "diagnoses.0.flagged_since_ns"},
+    "RsuDiagnosis": {"reference_time_ns", "flagged_since_ns"},
     "TagDetections": {"capture_time_ns"}, "Frame": {"capture_time_ns"}, "Imu": {"t_ns"}, "GroundTruth": {"t_ns"},
     "GnssFix": {"t_ns"}, "FusedPose": {"t_ns"},
 }
