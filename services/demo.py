@@ -19,6 +19,8 @@ from pathlib import Path
 from services.processes import TOPTAG, ProcessGroup, free_port
 from toptag.progress import Progress
 
+SERVICE_READY_S = 120.0  # how long a service may take to start on a busy machine
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag demo", description=__doc__.split("\n\n")[0])
@@ -86,8 +88,13 @@ def main(argv: list[str]) -> int:
         else:
             url = next(line for line in view.log_path.read_text().splitlines() if "open http" in line)
             print(f"toptag demo: live view: {url.split('open ', 1)[1]}", flush=True)
-    for tool in tools:  # recorder and view subscribed before the first message
-        group.wait_for_log(tool, "ready", 15)
+    # Subscribed before the first message: the recorder and the view always; with --replay every service
+    # too, for a recorded drive is played once and, on a busy machine where a process takes many seconds
+    # to start, would otherwise pass unseen (the simulator loops its scenario and starts at once).
+    for c in (rsus + buses if args.replay else []) + tools:
+        if not group.wait_for_log(c, "ready", SERVICE_READY_S):
+            print(f"toptag demo: {c.name} not ready after {SERVICE_READY_S:.0f} s; starting the drive anyway",
+                  file=sys.stderr, flush=True)
     if args.replay:
         sim = group.start("replay", TOPTAG + ["replay", args.replay, "--sensors", "--shift-to-now",
                                               "--wait-subscribers", "10"] + client
