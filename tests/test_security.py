@@ -249,7 +249,7 @@ def test_acl_binds_each_identity_to_its_own_keys(pki):
     assert allowed("rsu:rsu-sw", "put", "ingress") == {"toptag/v1/fix/*/*/rsu-sw", "toptag/v1/status/rsu/rsu-sw",
                                                         "toptag/v1/detections/rsu-sw"}
     assert allowed("bus:bus-17", "put", "ingress") == {"toptag/v1/approach/*/bus-17", "toptag/v1/leave/*/bus-17",
-                                                        "toptag/v1/fused/bus-17"}
+                                                        "toptag/v1/fused/bus-17", "toptag/v1/diag/*/*/bus-17"}
     assert allowed("bus:bus-17", "liveliness_token", "ingress") == {"toptag/v1/alive/*/bus-17"}
     assert allowed("monitor:monitor", "put", "ingress") == set()
     assert allowed("sim:sim", "put", "ingress") == {"toptag/v1/frame/**", "toptag/v1/imu/**", "toptag/v1/truth/**",

@@ -76,10 +76,7 @@ ROLE_GRANTS: dict[str, tuple[Grant, ...]] = {
         _g("its liveliness token", "liveliness_token", "ingress", _OWN["alive"]),
         _g("serve its active sessions", "declare_queryable reply", "ingress", _OWN["session"]),
         _g("", "query", "egress", _prefix("sessions")),
-        # Its RsuDiagnosis puts (keys.rsu_diagnosis(A, A, bus), _OWN["diag_by"]) are not granted yet: a
-        # secured deployment drops them at the router until tests/test_security.py's expected set of a
-        # bus's puts takes them (left to the lead, who owns that file now).
-        _g("publish its FusedPose", "put", "ingress", _OWN["fused"]),
+        _g("publish its FusedPose and its diagnoses of RSUs", "put", "ingress", _OWN["fused"], _OWN["diag_by"]),
         _g("learn the subscribers of what it publishes", "declare_subscriber", "egress",
            _prefix("approach"), _prefix("leave"), _prefix("fused_pose"), _prefix("rsu_diagnosis")),
         _g("receive its own PoseFix, IMU and GNSS", "declare_subscriber", "ingress",
