@@ -234,6 +234,25 @@ def test_pose_fix_carries_the_ambiguity_flag():
     assert decode(json.dumps(d).encode(), PoseFix).ambiguous is False
 
 
+def test_approach_carries_the_roof_height_sigma():
+    """The code bag's optional height_sigma (issue 11) rides the Approach: declared, it survives the wire
+    and reaches the Vehicle the RSU builds; undeclared, the bag's JSON is byte for byte what v1 senders
+    wrote (no null field for an older receiver to refuse) and the bus gets the default bounce prior; a
+    bad value is refused naming the field."""
+    from toptag.vehicle import HEIGHT_SIGMA_DEFAULT, Vehicle
+
+    a = SAMPLES["Approach"]
+    assert a.vehicle.height_sigma is None and "height_sigma" not in json.loads(encode(a))["vehicle"]
+    assert Vehicle(decode(encode(a), Approach).vehicle).height_sigma == HEIGHT_SIGMA_DEFAULT
+    rigid = a.model_copy(update={"vehicle": a.vehicle.model_copy(update={"height_sigma": 0.002})})
+    got = decode(encode(rigid), Approach)
+    assert got.vehicle.height_sigma == 0.002 and Vehicle(got.vehicle).height_sigma == 0.002
+    d = json.loads(encode(a))
+    d["vehicle"]["height_sigma"] = -0.01
+    with pytest.raises(ProtocolError, match="height_sigma"):
+        decode(json.dumps(d).encode(), Approach)
+
+
 # ---- keys -------------------------------------------------------------------------------------
 
 KEY_TABLE = [

@@ -58,6 +58,10 @@ class TargetSpec(BaseModel):
     tag_size: float | None = Field(default=None, gt=0)
     grid: GridSpec | None = None
     tags: dict[str, list[list[float]]] | None = None  # id -> (4, 3) board corners, detector order
+    height_sigma: float | None = Field(
+        default=None, gt=0, description="how well the board's plane is known along its normal (board metres): "
+                                        "a rigid board declares its tolerance; the eval's vehicles declare it, "
+                                        "scaled, as their roof-height sigma (absent: a bus's default bounce)")
 
     @model_validator(mode="after")
     def _layout(self) -> "TargetSpec":
@@ -84,6 +88,9 @@ class PoseTruth(BaseModel):
     R: list[list[float]]
     t: list[float]
     rms_px: float | None = None  # residual of the fit that made it
+    # m (board units): the fit's standard error of the board plane along its normal, i.e. how well this
+    # truth knows the board's height (what a rigid board may declare as its target.height_sigma)
+    plane_sigma: float | None = None
 
 
 class TagTruth(BaseModel):
@@ -232,4 +239,24 @@ def fit_board_pose(cam: Intrinsics, board_points, pixels) -> PoseTruth:
     rvec, tvec = cv2.solvePnPRefineLM(obj, ideal, K, None, rvec, tvec)
     R = cv2.Rodrigues(rvec)[0]
     e = project(cam, R, tvec.ravel(), obj) - px
-    return PoseTruth(R=R.tolist(), t=tvec.ravel().tolist(), rms_px=float(np.sqrt((e ** 2).sum(axis=1).mean())))
+    return PoseTruth(R=R.tolist(), t=tvec.ravel().tolist(), rms_px=float(np.sqrt((e ** 2).sum(axis=1).mean())),
+                     plane_sigma=_plane_sigma(cam, rvec.ravel(), tvec.ravel(), obj, e))
+
+
+def _plane_sigma(cam: Intrinsics, rvec, tvec, obj, residuals, step: float = 1e-7) -> float:
+    """Standard error of the fitted board plane's distance from the camera (n·t, n = R e_z): the pose's
+    covariance from the residuals (sigma per coordinate, n - 6 dof) through numeric Jacobians."""
+    p0 = np.r_[rvec, tvec]
+
+    def pixels(p):
+        return project(cam, cv2.Rodrigues(p[:3])[0], p[3:], obj).ravel()
+
+    def offset(p):
+        return float(cv2.Rodrigues(p[:3])[0][:, 2] @ p[3:])
+
+    steps = np.eye(6) * step
+    J = np.column_stack([(pixels(p0 + d) - pixels(p0 - d)) / (2 * step) for d in steps])
+    g = np.array([(offset(p0 + d) - offset(p0 - d)) / (2 * step) for d in steps])
+    r = np.asarray(residuals, float).ravel()
+    cov = (r @ r) / max(len(r) - 6, 1) * np.linalg.inv(J.T @ J)
+    return float(np.sqrt(g @ cov @ g))

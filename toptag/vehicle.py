@@ -1,6 +1,7 @@
 """Vehicle / code bag (SPEC.md: vehicle file): the tags on a bus roof and where their corners are."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,9 @@ from toptag.inputs import InputError, describe_validation_error, read_json
 # Families whose printed layout is the classic one (black square, one-cell white border) and whose
 # patterns both pupil-apriltags and OpenCV know; value = data bits per side.
 FAMILY_BITS = {"tag36h11": 6, "tag25h9": 5, "tag16h5": 4}
+# m: the roof-height uncertainty of a bus that declares none: a uniform ±10 cm bounce (suspension, load,
+# tyres). The solvers' default prior on the roof height (toptag.solvers.SIGMA_H_DEFAULT).
+HEIGHT_SIGMA_DEFAULT = 0.2 / math.sqrt(12.0)
 
 
 class TagSpec(BaseModel):
@@ -42,6 +46,11 @@ class VehicleFile(BaseModel):
 
     id: str = Field(min_length=1)
     height: float = Field(gt=0, description="roof (tag plane) height above ground, m")
+    # Optional (added in protocol v1; absent means HEIGHT_SIGMA_DEFAULT). Left out of the JSON when not
+    # declared, so that a bag which declares none reads exactly as before, to old receivers too.
+    height_sigma: float | None = Field(default=None, gt=0, exclude_if=lambda v: v is None,
+                                       description="standard deviation of the true roof height about `height`, m "
+                                                   "(a bouncing bus: the default; a rigid or measured roof: less)")
     family: str = "tag36h11"
     length: float = Field(gt=0)
     width: float = Field(gt=0)
@@ -70,6 +79,7 @@ class Vehicle:
         self.spec = spec
         self.id = spec.id
         self.height = spec.height
+        self.height_sigma = spec.height_sigma if spec.height_sigma is not None else HEIGHT_SIGMA_DEFAULT
         self.family = spec.family
         self.length = spec.length
         self.width = spec.width

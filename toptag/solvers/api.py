@@ -8,7 +8,7 @@ import numpy as np
 from toptag.detection import TagObservation
 from toptag.solvers.ambiguity import covering_covariance, mirror_candidate
 from toptag.solvers.bas import fit_bas
-from toptag.solvers.common import SIGMA_H_DEFAULT, Fit, PoseSolution
+from toptag.solvers.common import Fit, PoseSolution
 from toptag.solvers.hopt import fit_hopt, initial_pose
 from toptag.solvers.level import DETECTOR_BIAS, TURN_RATIO, DetectorBias, solve_level_corners
 from toptag.solvers.model import Calibration, Corners, build_corners
@@ -36,7 +36,7 @@ def canonical_method(method: str) -> str:
 
 
 def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "sopt", *,
-          weighting: str = "paper", sigma_px: float | None = None, sigma_h: float = SIGMA_H_DEFAULT,
+          weighting: str = "paper", sigma_px: float | None = None, sigma_h: float | None = None,
           mu: float = 1.0, robust: bool = True, height_model: str = "common",
           limits: Limits | None = None, calib_rot_sigma: float = 0.0, calib_trans_sigma: float = 0.0,
           turn_ratio: float | None = TURN_RATIO, detector_bias: DetectorBias = DETECTOR_BIAS) -> PoseSolution:
@@ -46,7 +46,8 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
     sigma_px: corner noise per pixel coordinate if known; else estimated from the residuals.
     sigma_h: standard deviation of the true roof height about vehicle.height (H.Opt.'s covariance,
     S.Opt.'s principled weighting and covariance, the level solver's height prior; the outlier and layout
-    tests allow for it).
+    tests allow for it). None: what the vehicle's code bag declares (vehicle.height_sigma; a bag that
+    declares nothing gets SIGMA_H_DEFAULT, a bouncing bus).
     mu: S.Opt.'s paper weighting of the height residuals (1/m). height_model: "common" (the roof is off
     by one offset, a bounce) or "independent" (each corner by its own), for S.Opt.
     calib_rot_sigma (rad, about each camera axis), calib_trans_sigma (m, camera centre per world axis):
@@ -70,6 +71,7 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
         raise ValueError(f"height_model must be one of {HEIGHT_MODELS}, not {height_model!r}")
     if sigma_px is not None and not sigma_px > 0:
         raise ValueError("sigma_px must be positive (or None to estimate it)")
+    sigma_h = float(vehicle.height_sigma if sigma_h is None else sigma_h)
     if not sigma_h >= 0 or (method == "sopt" and weighting == "principled" and not sigma_h > 0):
         raise ValueError("sigma_h must be >= 0, and > 0 for principled S.Opt.")
     if turn_ratio is not None and not turn_ratio > 0:

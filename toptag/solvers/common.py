@@ -8,8 +8,8 @@ import numpy as np
 
 from toptag.geometry import wrap_angle
 from toptag.solvers.model import IX, IY, IYAW, Corners
+from toptag.vehicle import HEIGHT_SIGMA_DEFAULT as SIGMA_H_DEFAULT  # the prior of a bag that declares none
 
-SIGMA_H_DEFAULT = 0.2 / math.sqrt(12.0)  # a uniform ±10 cm roof bounce
 # Corner noise per pixel coordinate, from real photographs (docs/real-data.md: toptag's detection path
 # against saddle-point truth on a hand-held board (EuRoC) and a phone photo of a grid; 0.15-0.2 px).
 # The prior is pooled into every estimate from a fit's residuals, worth PRIOR_DOF degrees of freedom;
