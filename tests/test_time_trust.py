@@ -352,3 +352,19 @@ def test_wire_carries_the_clock_offsets_flags_and_fix_paths(turn):
     c = flt.counters()
     assert h.accepted_fixes + h.rejected_fixes + h.too_old_fixes + h.future_fixes + c["refused_flagged"] + \
         h.other_fixes == c["fixes"]
+
+
+def test_fix_paths_add_up_across_filters(turn):
+    """A bus agent starts a new filter after an IMU gap (the next pass): its health adds the earlier
+    filters' fix counts (Health.plus_paths), so the paths count every fix since the agent started."""
+    traj, imu = turn
+    faults = faults_from_options(clock_offset_ms="rsu-se=30")
+    first = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults)).estimate().health
+    p = first.paths()  # disjoint outcomes; unknown clock and flagged RSU are attributes across them
+    assert p["accepted"] + p["rejected"] + p["too_old"] + p["future"] + p["other"] == len(fixes_with(traj, faults))
+    assert first.unknown_clock > 0
+    second = drive(BusFilter(), imu, arrivals(fixes_with(traj, {}, seed=9), {})).estimate().health
+    both = second.plus_paths(first.paths())
+    assert both.paths() == {k: first.paths()[k] + second.paths()[k] for k in first.paths()}
+    assert (both.status, both.pos_sigma_m, both.flagged_rsus) == (second.status, second.pos_sigma_m, second.flagged_rsus)
+    assert second.plus_paths({}) is second

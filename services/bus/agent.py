@@ -12,6 +12,7 @@ Approach carries its host's clock (toptag.hostclock).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import threading
 import time
@@ -74,6 +75,7 @@ class BusAgent:
         self._stop = threading.Event()
         self.filter = BusFilter(self.filter_config)
         self.filter_resets = 0
+        self._past_paths: dict[str, int] = {}  # fix counts by path of the filters before this one
         self._last_imu_ns: int | None = None
         self._gnss: GnssFix | None = None
         self.fix_latency_ns: list[int] = []
@@ -102,6 +104,9 @@ class BusAgent:
             if self._last_imu_ns is not None and s_from_ns(m.t_ns - self._last_imu_ns) > IMU_GAP_RESET_S:
                 # The vehicle was off (or the stream broke): nothing in the buffer describes it any more;
                 # what it learnt of the RSUs (time offsets, drift flags) still holds.
+                if self.filter.initialized:  # its fix counts go on in the next filter's health
+                    old = self.filter.estimate().health.paths()
+                    self._past_paths = {k: v + self._past_paths.get(k, 0) for k, v in old.items()}
                 self.filter = BusFilter(self.filter_config, memory=self.filter.memory())
                 self.filter_resets += 1
                 log.info("IMU gap of %.1f s: filter restarted", s_from_ns(m.t_ns - self._last_imu_ns))
@@ -184,6 +189,8 @@ class BusAgent:
             self._announce()
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
+            if est is not None:  # the health counts every fix since the agent started, across filters
+                est = dataclasses.replace(est, health=est.health.plus_paths(self._past_paths))
         if est is not None:
             self._fused_pub.put(fused_to_message(est, self.bus_id))
         if time.monotonic() - self._last_diagnosis >= DIAGNOSIS_PERIOD_S:

@@ -8,7 +8,7 @@ The state vector (world frame of SPEC.md)::
 `protocol.convert` turns a `FusedState` into the wire `protocol.messages.FusedPose`."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -42,6 +42,18 @@ class Health:
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
+
+    def paths(self) -> dict[str, int]:
+        """Its fix counts by path (FIX_PATHS)."""
+        return {k: getattr(self, k) for k in FIX_PATHS}
+
+    def plus_paths(self, earlier: dict[str, int]) -> Health:
+        """The same health with `earlier` fix counts (an earlier filter's paths()) added to its own."""
+        return replace(self, **{k: getattr(self, k) + earlier.get(k, 0) for k in FIX_PATHS}) if earlier else self
+
+
+# Health's counts of fixes by path (what became of every fix received).
+FIX_PATHS = ("accepted", "rejected", "too_old", "future", "from_flagged_rsu", "unknown_clock", "other")
 
 
 @dataclass(frozen=True)
