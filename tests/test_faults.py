@@ -142,3 +142,11 @@ def test_command_line_forms():
             faults_from_options(clock_offset_ms=bad)
     with pytest.raises(InputError, match="fault of rsu-se"):
         faults_from_options(capture_latency_ms="rsu-se=-5")
+
+
+def test_livefix_names_a_bad_bus(capsys):
+    """`toptag eval livefix` (the live pipeline's bias per RSU; its run is the figure in
+    docs/figures/time-trust/livefix, minutes of rendering): an unknown bus is a one-line error."""
+    from sim.studies.livefix import main
+    assert main(["--bus", "bus-99"]) == 2
+    assert "--bus bus-99: not in the scenario" in capsys.readouterr().err

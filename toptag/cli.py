@@ -33,6 +33,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("eval", "real"): ("sim.studies.real:main", "detection and every solver on real photographs with truth"),
     ("eval", "imagemodel"): ("sim.studies.imagemodel:main", "rendered vs real corner errors (simulator calibration)"),
     ("eval", "hamming"): ("sim.studies.hamming:main", "tags recovered vs false decodes per admitted bit error"),
+    ("eval", "livefix"): ("sim.studies.livefix:main", "live RSU pipeline's fix bias per RSU (drift thresholds)"),
 }
 
 
