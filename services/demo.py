@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import tempfile
@@ -16,7 +17,7 @@ import threading
 import time
 from pathlib import Path
 
-from services.processes import TOPTAG, ProcessGroup, free_port
+from services.processes import TOPTAG, ProcessGroup, cpu_seconds, free_port
 from toptag.progress import Progress
 
 SERVICE_READY_S = 120.0  # how long a service may take to start on a busy machine
@@ -40,6 +41,41 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instead of the simulator, replay a recorded drive (its frames, IMU, GNSS and truth, "
                         "shifted to now) through fresh RSUs and buses; --duration seconds of it (default: all)")
     return p
+
+
+class CpuWindow:
+    """Each process's CPU seconds over the demo's working window: from the moment the simulator (or
+    replay) is running (its start-up, imports and caches, excluded) to the moment the demo stops it."""
+
+    def __init__(self, group: ProcessGroup, source):
+        self.group, self.source = group, source
+        self.start: tuple[float, dict, float] | None = None
+        self.end: tuple[float, dict, float] | None = None
+
+    def _now(self) -> tuple[float, dict, float]:
+        return time.monotonic(), self.group.cpu_seconds(), cpu_seconds(os.getpid()) or 0.0
+
+    def sample(self, final: bool = False) -> None:
+        if self.start is None and (final or self._source_running()):
+            self.start = self._now()
+        if final:
+            self.end = self._now()
+
+    def _source_running(self) -> bool:
+        text = self.source.log_path.read_text(errors="replace")
+        return "sim running" in text or "replaying " in text
+
+    def report(self) -> dict:
+        if self.start is None or self.end is None:
+            return {"window_s": 0.0, "seconds": {}, "total_s": 0.0, "cores": None}
+        (t0, c0, d0), (t1, c1, d1) = self.start, self.end
+        seconds = {name: (round(c1[name] - c0[name], 2) if c1.get(name) is not None and c0.get(name) is not None
+                          else None) for name in c1}
+        seconds["demo+monitor"] = round(d1 - d0, 2)
+        total = sum(v for v in seconds.values() if v is not None)
+        window = t1 - t0
+        return {"window_s": round(window, 1), "seconds": seconds, "total_s": round(total, 2),
+                "cores": round(total / window, 3) if window > 0 else None}
 
 
 def main(argv: list[str]) -> int:
@@ -103,6 +139,7 @@ def main(argv: list[str]) -> int:
         sim = group.start("sim", TOPTAG + ["sim", "run", "--scenario", str(scenario_path)] + client)
 
     t_start = time.monotonic()
+    cpu = CpuWindow(group, sim)
     # With --replay the demo ends with the replay (its own --duration); else after --duration.
     seconds = 60.0 if args.duration is None else args.duration
     t_end = float("inf") if args.replay else t_start + seconds
@@ -110,6 +147,7 @@ def main(argv: list[str]) -> int:
     exit_code = 0
     try:
         while not stop.wait(args.period) and time.monotonic() < t_end:
+            cpu.sample()
             bar.set(round(time.monotonic() - t_start), note="Ctrl-C stops it and writes the report")
             print(monitor.progress(), flush=True)
             dead = group.dead()
@@ -122,6 +160,7 @@ def main(argv: list[str]) -> int:
                 break
     finally:
         bar.close()
+        cpu.sample(final=True)
         # Buses first (they send Leave), then the sim, the RSUs, and the router last.
         codes = group.stop(buses + [sim] + rsus)
         time.sleep(0.2)
@@ -132,12 +171,16 @@ def main(argv: list[str]) -> int:
         codes.update(group.stop([router]))
         for s, h in previous.items():
             signal.signal(s, h)
+    summary["cpu"] = cpu.report()
     summary["exit_codes"] = codes
     summary["logs"] = str(log_dir)
     print(monitor.progress(summary))
     print(json.dumps({b: {k: v for k, v in r.items() if k in ("fixes_received", "fix_pos_rms_m", "fused_pos_rms_m",
                                                                   "latency_ms_p50", "latency_ms_p99")}
                       for b, r in summary["buses"].items()}, indent=1))
+    c = summary["cpu"]
+    print(f"toptag demo: CPU over {c['window_s']} s: {c['cores']} cores "
+          f"({', '.join(f'{k} {v:.1f} s' for k, v in c['seconds'].items() if v is not None)})")
     if args.report:
         write_report(args.report, summary)
         print(f"toptag demo: report written to {args.report}")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol import keys
-from protocol.messages import FusedPose, FusionHealth, GroundTruth, PoseFix, RsuDiagnosis, RsuStatus
+from protocol.messages import Approach, FusedPose, FusionHealth, GroundTruth, Leave, PoseFix, RsuDiagnosis, RsuStatus
 from protocol.transport import MessageCounters, subscribe_messages
 from protocol.transport.runner import add_service_arguments, run_service
 from toptag.units import ms_from_ns, ns_from_s, s_from_ns
@@ -90,6 +90,10 @@ class BusScore:
         self.fused = 0
         self.fused_status: str | None = None
         self.health: FusionHealth | None = None
+        # Between the bus's Approach and its Leave (as heard here): fused samples, and how many said ok.
+        self.in_session = False
+        self.session_fused = 0
+        self.session_fused_ok = 0
         self.pending_fixes: list[tuple[int, float, float]] = []  # awaiting truth at their time
         self.pending_fused: list[tuple[int, float, float, str | None]] = []
 
@@ -106,7 +110,11 @@ class Monitor:
         self.buses: dict[str, BusScore] = defaultdict(BusScore)
         self.diagnoses: dict[tuple[str, str], RsuDiagnosis] = {}  # (rsu, bus) -> latest
         self.flags: dict[tuple[str, str], int] = {}  # (rsu, bus) -> flagged since (ns), as first reported
+        self.all_latency_ms = ErrorStats()  # every bus's fixes together
         self._subs = [
+            subscribe_messages(session, keys.approach(keys.ANY, keys.ANY), Approach, self._on_approach,
+                               self.counters, log),
+            subscribe_messages(session, keys.leave(keys.ANY, keys.ANY), Leave, self._on_leave, self.counters, log),
             subscribe_messages(session, keys.rsu_status(keys.ANY), RsuStatus, self._on_status, self.counters, log),
             subscribe_messages(session, keys.pose_fix(keys.ANY, keys.ANY, keys.ANY), PoseFix, self._on_fix,
                                self.counters, log),
@@ -134,6 +142,14 @@ class Monitor:
             if m.drift_flagged and m.flagged_since_ns is not None:
                 self.flags.setdefault((m.rsu_id, m.bus_id), m.flagged_since_ns)
 
+    def _on_approach(self, m: Approach) -> None:
+        with self._lock:
+            self.buses[m.bus_id].in_session = True
+
+    def _on_leave(self, m: Leave) -> None:
+        with self._lock:
+            self.buses[m.bus_id].in_session = False
+
     def _on_truth(self, m: GroundTruth) -> None:
         with self._lock:
             self._heard()
@@ -147,6 +163,7 @@ class Monitor:
             b.fixes += 1
             b.fixes_by_rsu[m.rsu_id] += 1
             b.latency_ms.add(ms_from_ns(arrival - m.capture_time_ns))
+            self.all_latency_ms.add(ms_from_ns(arrival - m.capture_time_ns))
             b.rsu_ms.add(ms_from_ns(m.publish_time_ns - m.capture_time_ns))
             b.fix_transit_ms.add(ms_from_ns(arrival - m.publish_time_ns))
             if m.processing_ns is not None:
@@ -160,6 +177,9 @@ class Monitor:
             b.fused += 1
             b.fused_status = m.health.status
             b.health = m.health
+            if b.in_session:
+                b.session_fused += 1
+                b.session_fused_ok += m.health.status == "ok"
             b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status))
 
     def _heard(self) -> None:
@@ -235,9 +255,18 @@ class Monitor:
                         "from_flagged_rsu": b.health.flagged_rsu_fixes, "unknown_clock": b.health.unknown_clock_fixes,
                         "other": b.health.other_fixes},
                     "flagged_rsus": [] if b.health is None else b.health.flagged_rsus,
+                    "fused_in_session_samples": b.session_fused,
+                    "fused_in_session_ok_fraction": (b.session_fused_ok / b.session_fused if b.session_fused
+                                                     else None),
                 }
+            n_session = sum(b.session_fused for b in self.buses.values())
+            totals = {"latency_ms_p50": self.all_latency_ms.pct(50), "latency_ms_p99": self.all_latency_ms.pct(99),
+                      "fixes_received": self.all_latency_ms.n,
+                      "fused_in_session_samples": n_session,
+                      "fused_in_session_ok_fraction": (sum(b.session_fused_ok for b in self.buses.values())
+                                                       / n_session if n_session else None)}
         return {"elapsed_s": round(time.monotonic() - self.started, 1), "rsus": rsus, "buses": buses,
-                "rejected_messages": self.counters.get("rejected")}
+                "all_buses": totals, "rejected_messages": self.counters.get("rejected")}
 
     def _trust(self, rsu: str) -> dict:
         """What the buses think of one RSU: time offsets (per bus), drift flags, the advice."""

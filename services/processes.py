@@ -21,6 +21,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+_TICKS_PER_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds the running process `pid` has used so far (Linux /proc); None when
+    it has exited or /proc is not there."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime (fields 14 and 15)
+
+
 def stop_process(popen: subprocess.Popen, sig: int = signal.SIGTERM, grace_s: float = 5.0) -> int | None:
     """Send `sig` to the process by its PID and wait; SIGKILL it if it outlives the grace. Its exit code."""
     if popen.poll() is None:
@@ -74,6 +88,10 @@ class ProcessGroup:
         child = Child(name, argv, p, log_path)
         self.children.append(child)
         return child
+
+    def cpu_seconds(self) -> dict[str, float | None]:
+        """CPU seconds used so far by each child (None for one that has exited)."""
+        return {c.name: cpu_seconds(c.pid) for c in self.children}
 
     def dead(self) -> list[Child]:
         return [c for c in self.children if not c.alive()]

@@ -1,0 +1,106 @@
+"""`toptag bench demo`: the whole demo (`toptag demo`) for --duration s, measured the same way every time.
+
+Prints and writes (--out, JSON) what says whether the demo keeps real time on this machine:
+- CPU seconds of every process over the working window (from the simulator's first frame to the
+  stop) and their total in cores;
+- per RSU: frames that reached it and those it skipped because it was busy (count and fraction);
+- fix latency (capture to arrival at the monitor) p50 / p99 over every bus's fixes;
+- the fraction of fused samples with status "ok" while a bus is in session (its Approach to its Leave).
+The figures depend on the machine and its load: quote `nproc`, the CPU model and what else ran.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+from pathlib import Path
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="toptag bench demo", description=__doc__.split("\n\n")[0])
+    p.add_argument("--duration", type=float, default=60.0, help="seconds of demo (default 60)")
+    p.add_argument("--scenario", default=None, help="scenario file (default: the bundled two-bus demo)")
+    p.add_argument("--out", default=None, help="write the figures as JSON here")
+    p.add_argument("--logs", default=None, help="directory for each process's log (default: a temp dir)")
+    return p
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def figures(report: dict) -> dict:
+    """The bench's figures from a `toptag demo --report` summary."""
+    rsus = {}
+    for rid, r in report.get("rsus", {}).items():
+        # frames: taken by the RSU's loop; skipped: overwritten unseen while it was busy (their sum: sent).
+        offered = r["frames"] + r["frames_skipped_busy"]
+        rsus[rid] = {"frames": offered, "skipped_busy": r["frames_skipped_busy"],
+                     "skipped_busy_fraction": round(r["frames_skipped_busy"] / offered, 4) if offered else None,
+                     "idle": r["frames_idle"], "processed": r["frames_processed"],
+                     "detect_ms_mean": r["detect_ms_mean"]}
+    totals = report.get("all_buses", {})
+    buses = {b: {"fixes": v["fixes_received"], "latency_ms_p50": v["latency_ms_p50"],
+                 "latency_ms_p99": v["latency_ms_p99"], "fused_in_session_samples": v["fused_in_session_samples"],
+                 "fused_in_session_ok_fraction": v["fused_in_session_ok_fraction"]}
+             for b, v in report.get("buses", {}).items()}
+    cpu = report.get("cpu", {})
+    return {"machine": {"nproc": os.cpu_count(), "cpu": _cpu_model()},
+            "cpu": {"window_s": cpu.get("window_s"), "cores": cpu.get("cores"), "total_s": cpu.get("total_s"),
+                    "seconds": cpu.get("seconds", {})},
+            "rsus": rsus,
+            "fix_latency_ms": {"p50": totals.get("latency_ms_p50"), "p99": totals.get("latency_ms_p99"),
+                               "fixes": totals.get("fixes_received")},
+            "fused_ok_in_session": {"fraction": totals.get("fused_in_session_ok_fraction"),
+                                    "samples": totals.get("fused_in_session_samples")},
+            "buses": buses,
+            "exit_codes": report.get("exit_codes", {})}
+
+
+def _fmt(v, spec: str = ".1f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def table(f: dict) -> str:
+    lines = [f"machine: {f['machine']['nproc']} cores, {f['machine']['cpu']}",
+             f"CPU over {_fmt(f['cpu']['window_s'])} s: {_fmt(f['cpu']['cores'], '.2f')} cores in all"]
+    for name, s in f["cpu"]["seconds"].items():
+        lines.append(f"  {name:14s} {_fmt(s, '.1f'):>7s} s")
+    for rid, r in f["rsus"].items():
+        frac = r["skipped_busy_fraction"]
+        lines.append(f"  {rid:14s} frames {r['frames']:5d} skipped busy {r['skipped_busy']:4d} "
+                     f"({_fmt(None if frac is None else 100 * frac)} %) idle {r['idle']:5d}")
+    lat = f["fix_latency_ms"]
+    lines.append(f"fix latency p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms over {lat['fixes']} fixes")
+    ok = f["fused_ok_in_session"]
+    lines.append(f"fused status ok while in session: {_fmt(None if ok['fraction'] is None else 100 * ok['fraction'])} %"
+                 f" of {ok['samples']} samples")
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    from services import demo
+
+    with tempfile.TemporaryDirectory(prefix="toptag-bench-demo-") as tmp:
+        report_path = Path(tmp) / "report.json"
+        demo_args = ["--duration", str(args.duration), "--report", str(report_path), "--period", "10"]
+        demo_args += ["--scenario", args.scenario] if args.scenario else []
+        demo_args += ["--logs", args.logs] if args.logs else []
+        code = demo.main(demo_args)
+        if not report_path.exists():
+            return code or 1
+        f = figures(json.loads(report_path.read_text()))
+    print("toptag bench demo:\n" + table(f))
+    if args.out:
+        Path(args.out).write_text(json.dumps(f, indent=1))
+        print(f"toptag bench demo: figures written to {args.out}")
+    return code
