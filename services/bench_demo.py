@@ -3,7 +3,8 @@
 Prints and writes (--out, JSON) what says whether the demo keeps real time on this machine:
 - CPU seconds of every process over the working window (from the simulator's first frame to the
   stop) and their total in cores;
-- per RSU: frames that reached it and those it skipped because it was busy (count and fraction);
+- per RSU: frames that reached it and those it skipped because it was busy (count and fraction), and
+  where its time went: frames and mean processing ms per kind of work (acquisition, tracking, nothing);
 - fix latency (capture to arrival at the monitor) p50 / p99 over every bus's fixes;
 - the fraction of fused samples with status "ok" while a bus is in session (its Approach to its Leave).
 The figures depend on the machine and its load: quote `nproc`, the CPU model and what else ran.
@@ -46,7 +47,8 @@ def figures(report: dict) -> dict:
         rsus[rid] = {"frames": offered, "skipped_busy": r["frames_skipped_busy"],
                      "skipped_busy_fraction": round(r["frames_skipped_busy"] / offered, 4) if offered else None,
                      "idle": r["frames_idle"], "processed": r["frames_processed"],
-                     "detect_ms_mean": r["detect_ms_mean"]}
+                     "detect_ms_mean": r["detect_ms_mean"],
+                     "processing_ms_by_kind": r.get("processing_ms_by_kind", {})}
     totals = report.get("all_buses", {})
     buses = {b: {"fixes": v["fixes_received"], "latency_ms_p50": v["latency_ms_p50"],
                  "latency_ms_p99": v["latency_ms_p99"], "fused_in_session_samples": v["fused_in_session_samples"],
@@ -77,7 +79,9 @@ def table(f: dict) -> str:
     for rid, r in f["rsus"].items():
         frac = r["skipped_busy_fraction"]
         lines.append(f"  {rid:14s} frames {r['frames']:5d} skipped busy {r['skipped_busy']:4d} "
-                     f"({_fmt(None if frac is None else 100 * frac)} %) idle {r['idle']:5d}")
+                     f"({_fmt(None if frac is None else 100 * frac)} %) idle {r['idle']:5d}; "
+                     + ", ".join(f"{k} {v['frames']} x {v['mean_ms']:.1f} ms"
+                                 for k, v in r["processing_ms_by_kind"].items()))
     lat = f["fix_latency_ms"]
     lines.append(f"fix latency p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms over {lat['fixes']} fixes")
     ok = f["fused_ok_in_session"]

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from protocol import keys
-from protocol.messages import Approach, FusedPose, FusionHealth, GroundTruth, Leave, PoseFix, RsuDiagnosis, RsuStatus
+from protocol.messages import (Approach, FusedPose, FusionHealth, GroundTruth, Leave, PoseFix, RsuDiagnosis,
+                               RsuStatus, TagDetections)
 from protocol.transport import MessageCounters, subscribe_messages
 from protocol.transport.runner import add_service_arguments, run_service
 from toptag.units import ms_from_ns, ns_from_s, s_from_ns
@@ -79,6 +80,17 @@ class ErrorStats:
         return float(np.percentile(self.recent, q)) if self.recent else None
 
 
+def frame_kind(modes: dict[str, str]) -> str:
+    """What an RSU did with a frame, from its buses' pipeline modes: "acquisition" when it searched for
+    a bus it has not found, else "tracking" when it cropped around a bus, else "nothing to do"."""
+    kinds = set(modes.values())
+    if kinds & {"acquired", "searching"}:
+        return "acquisition"
+    if kinds & {"tracked", "hinted"}:
+        return "tracking"
+    return "nothing to do"
+
+
 class BusScore:
     def __init__(self):
         self.fix_err, self.fused_err, self.latency_ms = ErrorStats(), ErrorStats(), ErrorStats()
@@ -111,10 +123,14 @@ class Monitor:
         self.diagnoses: dict[tuple[str, str], RsuDiagnosis] = {}  # (rsu, bus) -> latest
         self.flags: dict[tuple[str, str], int] = {}  # (rsu, bus) -> flagged since (ns), as first reported
         self.all_latency_ms = ErrorStats()  # every bus's fixes together
+        # rsu -> frame kind -> [frames, processing ms]: where an RSU's time goes (frame_kind)
+        self.work: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(lambda: [0, 0.0]))
         self._subs = [
             subscribe_messages(session, keys.approach(keys.ANY, keys.ANY), Approach, self._on_approach,
                                self.counters, log),
             subscribe_messages(session, keys.leave(keys.ANY, keys.ANY), Leave, self._on_leave, self.counters, log),
+            subscribe_messages(session, keys.detections(keys.ANY), TagDetections, self._on_detections, self.counters,
+                               log),
             subscribe_messages(session, keys.rsu_status(keys.ANY), RsuStatus, self._on_status, self.counters, log),
             subscribe_messages(session, keys.pose_fix(keys.ANY, keys.ANY, keys.ANY), PoseFix, self._on_fix,
                                self.counters, log),
@@ -149,6 +165,14 @@ class Monitor:
     def _on_leave(self, m: Leave) -> None:
         with self._lock:
             self.buses[m.bus_id].in_session = False
+
+    def _on_detections(self, m: TagDetections) -> None:
+        if m.processing_ns is None:
+            return
+        with self._lock:
+            acc = self.work[m.rsu_id][frame_kind(m.modes)]
+            acc[0] += 1
+            acc[1] += ms_from_ns(m.processing_ns)
 
     def _on_truth(self, m: GroundTruth) -> None:
         with self._lock:
@@ -224,7 +248,9 @@ class Monitor:
                           "detect_ms_max": self.detect_ms[rid][2] if rid in self.detect_ms else None,
                           "detect_ms_last_s": None if s.detection_ns_mean is None else ms_from_ns(s.detection_ns_mean),
                           "messages_rejected": s.messages_rejected,
-                          "clock": s.clock.model_dump(), "drift_flagged_in_status": s.drift_flagged}
+                          "clock": s.clock.model_dump(), "drift_flagged_in_status": s.drift_flagged,
+                          "processing_ms_by_kind": {k: {"frames": n, "mean_ms": round(ms / n, 2)}
+                                                    for k, (n, ms) in sorted(self.work.get(rid, {}).items())}}
                     for rid, s in sorted(self.status.items())}
             for rid in sorted({r for r, _ in self.diagnoses}):
                 rsus.setdefault(rid, {}).update(self._trust(rid))

@@ -5,7 +5,7 @@
 - The static background: asphalt and pavement with texture, lane marks, zebra crossings and stop
   lines of SPEC's intersection (roads along world x and y, 4 lanes of 3.7 m), box-filtered per pixel
   (analytic coverage of every mark over the pixel's ground footprint: no aliasing, no supersampling).
-- The blurred, gain-applied uint8 background per (blur, gain) and a noise buffer.
+- The blurred, gain-applied uint8 background per (blur, gain) and a bank of sensor noise samples.
 """
 from __future__ import annotations
 
@@ -41,6 +41,10 @@ CACHE_BYTES = 1_200_000_000  # about ten 3200x2400 cameras (115 MB each) or any 
 def camera_key(camera: Camera) -> tuple:
     return (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(), camera.R.tobytes(),
             camera.t.tobytes())
+
+
+NOISE_BANK_EXTRA = 1 << 20  # distinct noise fields per camera (offsets into the bank)
+NOISE_BANK_SEED = 0x5EED
 
 
 def raster_for(camera: Camera) -> "CameraRaster":
@@ -273,12 +277,28 @@ class CameraRaster:
         self.center = camera.center
         self.radiance = ground_radiance(camera, self.xn, self.yn)
         self._finished: dict[tuple, np.ndarray] = {}
-        self.noise = np.empty((self.height, self.width), np.int16)
+        self._noise_bank = np.zeros(0, np.int16)
+        self._noise_sigma: float | None = None
 
     @property
     def nbytes(self) -> int:
-        return (self.xn.nbytes + self.yn.nbytes + self.radiance.nbytes + self.noise.nbytes
+        return (self.xn.nbytes + self.yn.nbytes + self.radiance.nbytes + self._noise_bank.nbytes
                 + sum(a.nbytes for a in self._finished.values()))
+
+    def noise(self, sigma: float, rng: np.random.Generator) -> np.ndarray:
+        """(H, W) int16 sensor noise: N(0, sigma²) rounded to grey levels, independent per pixel, a
+        fresh field per call. Drawing 0.7 M normal samples per 960x720 frame cost more than the rest
+        of a frame; the field is instead a window, at an offset drawn from rng, into a bank of
+        independent samples drawn once per camera and sigma (H·W + NOISE_BANK_EXTRA of them). Within a
+        frame it is i.i.d. as before; two frames share a pixel's sample only if their offsets are equal
+        (one time in a million)."""
+        n = self.height * self.width
+        if self._noise_sigma != sigma:
+            draw = np.random.default_rng(NOISE_BANK_SEED).standard_normal(n + NOISE_BANK_EXTRA, dtype=np.float32)
+            self._noise_bank = np.rint(draw * np.float32(sigma)).astype(np.int16)
+            self._noise_sigma = sigma
+        offset = int(rng.integers(0, NOISE_BANK_EXTRA + 1))
+        return self._noise_bank[offset:offset + n].reshape(self.height, self.width)
 
     def finished_background(self, model) -> np.ndarray:
         """The static background as the camera delivers it before noise (uint8, cached per optics)."""

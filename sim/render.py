@@ -570,9 +570,7 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
     if layers:
         _composite(rast, layers, model, out)
     if model.noise_sigma > 0:
-        cv2.setRNGSeed(int(rng.integers(1, 2 ** 31 - 1)))
-        cv2.randn(rast.noise, 0.0, float(model.noise_sigma))
-        cv2.add(out, rast.noise, dst=out, dtype=cv2.CV_8U)
+        cv2.add(out, rast.noise(float(model.noise_sigma), rng), dst=out, dtype=cv2.CV_8U)
     if model.codec != "jpeg":
         out = video_roundtrip(out, model.codec, model.video_qp)
     elif model.jpeg_quality > 0:

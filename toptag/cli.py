@@ -28,6 +28,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("bench", "filter"): ("sim.bench_filter:main", "cost of the bus filter's add_fix, add_imu, estimate"),
     ("eval", "fusion"): ("sim.studies.fusion:main", "fused pose error against latency, clock offsets, drift (study)"),
+    ("bench", "solver"): ("services.bench_solver:main", "cost of one pose solve per solver (the RSU's two-tag case)"),
     ("bench", "demo"): ("services.bench_demo:main", "the whole demo: CPU per process, frames skipped, latency, fused ok"),
     ("eval", "replay"): ("services.replay_eval:main", "re-run a bus's fusion offline on a recording"),
     ("eval", "paper"): ("sim.studies.paper:main", "reproduce the paper's simulation study"),

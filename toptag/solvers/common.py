@@ -136,9 +136,13 @@ def estimate_sigma(ss: float, dof: float, floor: float = SIGMA_FLOOR_PX,
 def safe_inverse(A: np.ndarray) -> np.ndarray:
     """Inverse of a normal matrix, or all-inf when the data do not determine the parameters."""
     try:
-        if not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e15:
+        if not np.all(np.isfinite(A)):
             raise np.linalg.LinAlgError
-        return np.linalg.inv(A)
+        # One SVD gives both the condition number and the inverse.
+        u, s, vt = np.linalg.svd(A)
+        if not s[-1] > 0 or s[0] / s[-1] > 1e15:
+            raise np.linalg.LinAlgError
+        return (vt.T / s) @ u.T
     except np.linalg.LinAlgError:
         return np.full_like(A, np.inf)
 

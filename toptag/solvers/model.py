@@ -8,6 +8,7 @@ top-left 3x3 block is the one SPEC's pose reports; H.Opt. is the same model with
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,17 +119,23 @@ def euler_rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
 
 
 def _euler_with_derivatives(yaw, pitch, roll):
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    cp, sp = np.cos(pitch), np.sin(pitch)
-    cr, sr = np.cos(roll), np.sin(roll)
-    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-    Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
-    dRz = np.array([[-sy, -cy, 0.0], [cy, -sy, 0.0], [0.0, 0.0, 0.0]])
-    dRy = np.array([[-sp, 0.0, cp], [0.0, 0.0, 0.0], [-cp, 0.0, -sp]])
-    dRx = np.array([[0.0, 0.0, 0.0], [0.0, -sr, -cr], [0.0, cr, -sr]])
-    RyRx = Ry @ Rx
-    return Rz @ RyRx, dRz @ RyRx, Rz @ dRy @ Rx, Rz @ Ry @ dRx
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cr, sr = math.cos(roll), math.sin(roll)
+    # R = Rz(yaw) Ry(pitch) Rx(roll) and its partial derivatives, written out (one array each).
+    R = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                  [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                  [-sp, cp * sr, cp * cr]])
+    dyaw = np.array([[-sy * cp, -sy * sp * sr - cy * cr, -sy * sp * cr + cy * sr],
+                     [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [0.0, 0.0, 0.0]])
+    dpitch = np.array([[-cy * sp, cy * cp * sr, cy * cp * cr],
+                       [-sy * sp, sy * cp * sr, sy * cp * cr],
+                       [-cp, -sp * sr, -sp * cr]])
+    droll = np.array([[0.0, cy * sp * cr + sy * sr, -cy * sp * sr + sy * cr],
+                      [0.0, sy * sp * cr - cy * sr, -sy * sp * sr - cy * cr],
+                      [0.0, cp * cr, -cp * sr]])
+    return R, dyaw, dpitch, droll
 
 
 def euler_angles(R) -> tuple[float, float, float]:
@@ -156,9 +163,11 @@ def roof_world(theta, points) -> tuple[np.ndarray, np.ndarray]:
     dP[:, 0, IX] = 1.0
     dP[:, 1, IY] = 1.0
     dP[:, 2, IZ] = 1.0
-    dP[:, :, IYAW] = points @ dyaw.T
-    dP[:, :, IPITCH] = points @ dpitch.T
-    dP[:, :, IROLL] = points @ droll.T
+    # The three rotation derivatives in one product: (M,3) @ (3, 3·3) -> columns yaw, pitch, roll.
+    rot = points @ np.hstack([dyaw.T, dpitch.T, droll.T])
+    dP[:, :, IYAW] = rot[:, 0:3]
+    dP[:, :, IPITCH] = rot[:, 3:6]
+    dP[:, :, IROLL] = rot[:, 6:9]
     return P, dP
 
 
@@ -186,12 +195,10 @@ def evaluate(c: Corners, theta) -> Evaluation:
         iz = 1.0 / Z
         xn = Xc[:, :2] * iz[:, None]
         uv = np.einsum("nij,nj->ni", c.cam_K, xn) + c.cam_c
-        # d(normalised)/d(X_cam), then chain through K, R_wc and the pose.
-        D = np.zeros((len(Z), 2, 3))
-        D[:, 0, 0] = iz
-        D[:, 1, 1] = iz
-        D[:, :, 2] = -xn * iz[:, None]
-        J = c.cam_K @ D @ c.cam_R @ dP
+        # d(normalised)/d(X_cam) = [I | -xn] / Z, chained through K, R_wc and the pose.
+        A = np.einsum("nij,njk->nik", c.cam_R, dP)  # d(X_cam)/d(theta) (N,3,6)
+        dxn = (A[:, :2, :] - xn[:, :, None] * A[:, 2:3, :]) * iz[:, None, None]
+        J = np.einsum("nij,njk->nik", c.cam_K, dxn)
     return Evaluation((uv - c.pixels).ravel(), J.reshape(-1, 6), P_roof[:, 2], dP_roof[:, 2, :], Z)
 
 
