@@ -26,8 +26,9 @@ SERVICE_READY_S = 120.0  # how long a service may take to start on a busy machin
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag demo", description=__doc__.split("\n\n")[0])
     p.add_argument("--scenario", default=None, help="scenario file (default: the bundled two-bus demo)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to run (default 60; with --replay: "
-                                                                 "seconds of the recording, default all of it)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="seconds to run from the simulator's first frame (default 60; with --replay: seconds of the "
+                        "recording, default all of it)")
     p.add_argument("--bus-config", default=None, metavar="BUS.toml",
                    help="settings file for every bus (toptag bus --config; default: the scenario's bus_config)")
     p.add_argument("--report", default=None, help="write the JSON report here")
@@ -41,6 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instead of the simulator, replay a recorded drive (its frames, IMU, GNSS and truth, "
                         "shifted to now) through fresh RSUs and buses; --duration seconds of it (default: all)")
     return p
+
+
+STARTUP_S = 120.0  # the longest the simulator's start-up may take before --duration counts anyway
 
 
 class CpuWindow:
@@ -140,16 +144,24 @@ def main(argv: list[str]) -> int:
 
     t_start = time.monotonic()
     cpu = CpuWindow(group, sim)
-    # With --replay the demo ends with the replay (its own --duration); else after --duration.
+    # With --replay the demo ends with the replay (its own --duration); else --duration s after the
+    # simulator's first frame (its start-up, at most STARTUP_S, is not counted).
     seconds = 60.0 if args.duration is None else args.duration
-    t_end = float("inf") if args.replay else t_start + seconds
     bar = Progress(seconds, "toptag demo", unit=" s")
     exit_code = 0
+    last_print = t_start
     try:
-        while not stop.wait(args.period) and time.monotonic() < t_end:
+        while not stop.wait(0.25):
+            now = time.monotonic()
             cpu.sample()
-            bar.set(round(time.monotonic() - t_start), note="Ctrl-C stops it and writes the report")
-            print(monitor.progress(), flush=True)
+            began = cpu.start[0] if cpu.start is not None else None
+            if not args.replay and now >= (began if began is not None else t_start + STARTUP_S) + seconds:
+                break
+            if now - last_print >= args.period:
+                last_print = now
+                bar.set(round(now - (began if began is not None else now)),
+                        note="Ctrl-C stops it and writes the report")
+                print(monitor.progress(), flush=True)
             dead = group.dead()
             if args.replay and dead == [sim] and sim.popen.returncode == 0:
                 break  # the recorded drive is over

@@ -186,18 +186,22 @@ class RsuService:
         if not self._sessions:
             c.frames_idle += 1  # no bus announced: no decoding, no detection
             return
-        try:
+
+        def decode():  # only when the pipeline searches some region of this frame
             gray = frame_to_gray(frame)
             if gray.shape != (self.camera.height, self.camera.width):
                 raise ProtocolError(f"frame {frame.seq}: {gray.shape[1]}x{gray.shape[0]} from a "
                                     f"{self.camera.width}x{self.camera.height} camera", reason="frame")
+            return gray
+
+        t0 = time.perf_counter_ns()
+        try:
+            result = self.pipeline.process(decode, frame.capture_time_ns, frame.seq)
         except ProtocolError as e:
             c.frames_bad += 1
             self.msg_counters.inc(REJECTED, "Frame", keys.frame(self.rsu_id), reason=e.reason, error=str(e))
             log.warning("dropped frame: %s", e)
             return
-        t0 = time.perf_counter_ns()
-        result = self.pipeline.process(gray, frame.capture_time_ns, frame.seq)
         processing_ns = time.perf_counter_ns() - t0
         c.detect_ns.append(processing_ns)
         c.frames_processed += 1

@@ -10,7 +10,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -199,14 +199,13 @@ class RsuPipeline:
         return self._pools[families]
 
     # ---- per frame ----------------------------------------------------------------------------
-    def process(self, gray: np.ndarray, t_ns: int, seq: int | None = None) -> FrameResult:
-        """Detect and solve every announced vehicle in the frame captured at t_ns (frame number seq)."""
+    def process(self, gray: np.ndarray | Callable[[], np.ndarray], t_ns: int, seq: int | None = None) -> FrameResult:
+        """Detect and solve every announced vehicle in the frame captured at t_ns (frame number seq).
+        gray: the image, or a function that decodes it, called only when some region is to be searched
+        (a frame whose buses are all out of view, or whose search is not due, is never decoded)."""
         result = FrameResult(t_ns)
         if not self.vehicles:
             return result
-        if gray.shape != (self.camera.height, self.camera.width):
-            raise ValueError(f"frame is {gray.shape[1]}x{gray.shape[0]}, camera {self.camera.id} is "
-                             f"{self.camera.width}x{self.camera.height}")
         pool = self._pool()
         tracked = [vid for vid, tr in self.tracks.items() if tr.found and self.settings.tracking]
         hinted = [vid for vid in self.vehicles if vid not in tracked and self._fresh_hint(vid, t_ns)]
@@ -228,7 +227,12 @@ class RsuPipeline:
             self._last_acquire_ns = t_ns
             jobs += self._acquisition_jobs([self.vehicles[v] for v in unfound])
 
-        per_job = pool.run(gray, jobs)
+        if jobs:
+            gray = gray() if callable(gray) else gray
+            if gray.shape != (self.camera.height, self.camera.width):
+                raise ValueError(f"frame is {gray.shape[1]}x{gray.shape[0]}, camera {self.camera.id} is "
+                                 f"{self.camera.width}x{self.camera.height}")
+        per_job = pool.run(gray, jobs) if jobs else []
         raw = [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
         wanted = {(self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids}
         coarse = [d for job, found in zip(jobs, per_job) if job.decimate != 1.0 for d in found

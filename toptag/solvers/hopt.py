@@ -22,6 +22,7 @@ from toptag.solvers.model import (
     calib_columns,
     calib_residual_rms,
     evaluate,
+    evaluate_level,
     planar_theta,
 )
 
@@ -60,10 +61,10 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
     the cameras' calibration uncertainty when given."""
 
     def fun(p):
-        ev = evaluate(c, planar_theta(p[0], p[1], p[2], h))
-        if not ev.in_front:
-            return np.full(2 * c.n, np.inf), ev.J_px[:, PLANAR]
-        return ev.r_px, ev.J_px[:, PLANAR]
+        r_px, J, in_front = evaluate_level(c, p[0], p[1], p[2], h)
+        if not in_front:
+            return np.full(2 * c.n, np.inf), J[:, PLANAR]
+        return r_px, J[:, PLANAR]
 
     res = levenberg_marquardt(fun, np.asarray(start, dtype=float))
     theta = planar_theta(res.theta[0], res.theta[1], res.theta[2], h)

@@ -65,6 +65,7 @@ from toptag.solvers.model import (
     calib_columns,
     camera_index,
     evaluate,
+    evaluate_level,
     planar_theta,
 )
 
@@ -212,6 +213,9 @@ class LevelProblem:
 
     def pixels(self, p):
         """(raw pixel residuals (2N,), their Jacobian (2N, n_p), every corner in front of its camera)."""
+        if not self.n_c:  # the RSU's case: a level roof, cameras as calibrated
+            r_px, J, ok = evaluate_level(self.c, p[0], p[1], p[2], p[3] if self.zfree else self.h)
+            return r_px, J[:, :self.n_pose], ok
         theta = self.theta(p)
         cc = self.corrected(p)
         ev = evaluate(cc, theta)
@@ -244,24 +248,20 @@ class LevelProblem:
         c, b = self.c, self.bias
         if b == NO_BIAS:
             return 0.0
-        shift = _outward(c)
+        gain = H_inv @ (Jw.T * d2) @ self.T / sigma  # p's response to a raw pixel residual change
+        # Pixel patterns, one column each: every tag's outward edge shift; each camera's x and y shift.
         per_row = np.repeat(c.unit_of, 2)
-        gain = H_inv @ (Jw.T * d2)  # p's response to a whitened residual change
-        cov = np.zeros((self.n_p, self.n_p))
-        cams = {}
-        for k, unit in enumerate(c.units):
-            g = gain @ (self.T @ np.where(per_row == k, shift, 0.0)) / sigma
-            cov += b.edge_tag ** 2 * np.outer(g, g)
-            cams[unit.camera.id] = cams.get(unit.camera.id, 0.0) + g
-        for g in cams.values():
-            cov += b.edge_common ** 2 * np.outer(g, g)
-        cam_of_row = np.repeat([c.units[k].camera.id for k in c.unit_of], 2)
-        axis = np.tile([1.0, 0.0], c.n)
-        for cam_id in cams:
-            for a in (axis, 1.0 - axis):
-                g = gain @ (self.T @ np.where(cam_of_row == cam_id, a, 0.0)) / sigma
-                cov += b.image_shift ** 2 * np.outer(g, g)
-        return cov
+        units = (per_row[:, None] == np.arange(len(c.units))[None, :]) * _outward(c)[:, None]
+        G_tag = gain @ units  # (n_p, tags)
+        cam_ids = sorted({u.camera.id for u in c.units})
+        cam_of_unit = np.array([cam_ids.index(u.camera.id) for u in c.units])
+        in_cam = (cam_of_unit[:, None] == np.arange(len(cam_ids))[None, :]).astype(float)  # (tags, cams)
+        G_cam = G_tag @ in_cam  # each camera's common outward shift
+        rows_cam = in_cam[per_row]  # (2N, cams)
+        axis = np.tile([1.0, 0.0], c.n)[:, None]
+        G_img = np.hstack([gain @ (rows_cam * axis), gain @ (rows_cam * (1.0 - axis))])
+        return (b.edge_tag ** 2 * G_tag @ G_tag.T + b.edge_common ** 2 * G_cam @ G_cam.T
+                + b.image_shift ** 2 * G_img @ G_img.T)
 
     def minimise(self, p0, sigma: float):
         return levenberg_marquardt(self.residuals(sigma), p0)

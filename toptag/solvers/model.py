@@ -8,6 +8,7 @@ top-left 3x3 block is the one SPEC's pose reports; H.Opt. is the same model with
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -52,8 +53,9 @@ class Corners:
     def n(self) -> int:
         return len(self.pixels)
 
-    @property
+    @functools.cached_property
     def points(self) -> np.ndarray:
+        """(N,3) vehicle-top coordinates of each observed corner (computed once; never modified)."""
         return self.roof_points[self.corner_of]
 
     @property
@@ -201,6 +203,32 @@ def evaluate(c: Corners, theta) -> Evaluation:
         J = np.einsum("nij,njk->nik", c.cam_K, dxn)
     return Evaluation((uv - c.pixels).ravel(), J.reshape(-1, 6), P_roof[:, 2], dP_roof[:, 2, :], Z)
 
+
+
+def evaluate_level(c: Corners, x: float, y: float, yaw: float, z: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """`evaluate` for a level roof (pitch = roll = 0), in the few operations the solvers' inner loops
+    need: (pixel residuals (2N,), their Jacobian (2N, 4) over (x, y, yaw, z), every corner in front)."""
+    P = c.points
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    rx = cy * P[:, 0] - sy * P[:, 1]  # roof corners rotated by yaw, about the vehicle-top origin
+    ry = sy * P[:, 0] + cy * P[:, 1]
+    W = np.column_stack([rx + x, ry + y, P[:, 2] + z])
+    R = c.cam_R
+    Xc = np.einsum("nij,nj->ni", R, W) + c.cam_t
+    Z = Xc[:, 2]
+    # d(X_cam)/d(x, y, yaw, z): the camera rotation's columns, and d(world)/d(yaw) = (-ry, rx, 0).
+    A = np.empty((len(Z), 3, 4))
+    A[:, :, 0] = R[:, :, 0]
+    A[:, :, 1] = R[:, :, 1]
+    A[:, :, 2] = R[:, :, 1] * rx[:, None] - R[:, :, 0] * ry[:, None]
+    A[:, :, 3] = R[:, :, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        iz = 1.0 / Z
+        xn = Xc[:, :2] * iz[:, None]
+        uv = np.einsum("nij,nj->ni", c.cam_K, xn) + c.cam_c
+        dxn = (A[:, :2, :] - xn[:, :, None] * A[:, 2:3, :]) * iz[:, None, None]
+        J = np.einsum("nij,njk->nik", c.cam_K, dxn)
+    return (uv - c.pixels).ravel(), J.reshape(-1, 4), bool(np.all(Z > MIN_DEPTH))
 
 
 # ---- camera calibration ------------------------------------------------------------------------
