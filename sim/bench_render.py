@@ -4,6 +4,11 @@ built before timing. Optionally, the detection rate of that bus versus distance.
 
     python -m sim.bench_render                    # 960x720 and 3200x2400, 100 frames each
     python -m sim.bench_render --frames 30 --detection
+    python -m sim.bench_render --live             # the live simulator's frames (`toptag sim run`)
+
+--live times what `toptag sim run` does per camera frame: every RSU of the bundled demo scenario at
+0.3 s steps over its first 60 s (buses, trucks, empty roads alike), the scenario's image model, JPEG
+bytes out; thread CPU ms (time.thread_time), so that other work on a shared machine inflates it less.
 """
 from __future__ import annotations
 
@@ -52,6 +57,30 @@ def run(width: int, height: int, frames: int, model: ImageModel | None = None, s
     return {"width": width, "height": height, "frames": frames, "p50_ms": round(float(np.percentile(ms, 50)), 2),
             "p90_ms": round(float(np.percentile(ms, 90)), 2), "mean_ms": round(float(ms.mean()), 2),
             "cache_build_s": round(cache_s, 3), "model": model.describe()}
+
+
+def live_frames(seconds: float = 60.0, step_s: float = 0.3) -> dict:
+    """Thread CPU ms per `World.render_jpeg` of the bundled scenario (see the module doc)."""
+    from sim.scenario import bundled_scenario_path, load_scenario
+    from sim.world import World
+
+    cv2.setNumThreads(1)
+    world = World(load_scenario(bundled_scenario_path()))
+    world.warm_up()
+    world.start(0)
+    ms, with_vehicles = [], []
+    for k in range(int(seconds / step_s)):
+        t_ns = int(round(k * step_s * 1e9))
+        busy = bool(world.vehicles_at(t_ns) or world.occluders_at(t_ns))
+        for r in range(len(world.cameras)):
+            t = time.thread_time()
+            world.render_jpeg(r, t_ns)
+            ms.append((time.thread_time() - t) * 1e3)
+            with_vehicles.append(busy)
+    a = np.asarray(ms)
+    return {"frames": len(a), "cpu_p50_ms": round(float(np.percentile(a, 50)), 2),
+            "cpu_p90_ms": round(float(np.percentile(a, 90)), 2), "cpu_mean_ms": round(float(a.mean()), 2),
+            "frames_with_vehicles_on_the_road": int(np.sum(with_vehicles)), "model": world.model.describe()}
 
 
 def detection_rates(distances=(5, 10, 15, 18, 20, 22), trials: int = 50, width: int = 960, height: int = 720,
@@ -110,7 +139,11 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--detection", action="store_true", help="also measure detection rate vs distance")
     ap.add_argument("--trials", type=int, default=50)
+    ap.add_argument("--live", action="store_true", help="only the live simulator's frames (see above)")
     args = ap.parse_args(argv)
+    if args.live:
+        print(json.dumps(live_frames(), indent=2))
+        return 0
     result = {"render": [run(960, 720, args.frames), run(3200, 2400, args.frames)]}
     if args.detection:
         result["detection_960x720"] = detection_rates(trials=args.trials)

@@ -343,14 +343,13 @@ class CameraRaster:
             if len(n) < 3:
                 return None
         if cam.has_distortion:
-            f = cam.K[0, 0]
-            pts = []
-            for i in range(len(n)):
-                a, b = n[i], n[(i + 1) % len(n)]
-                m = int(np.clip(np.ceil(np.linalg.norm(b - a) * f / 12.0), 1, 512))
-                s = np.arange(m)[:, None] / m
-                pts.append(a + s * (b - a))
-            n = cam.distort_normalized(np.vstack(pts))
+            # Each edge a -> b as m points a + (k/m)(b - a), k < m, m ~ one per 12 px (all edges at once).
+            a = n
+            d = np.roll(n, -1, axis=0) - a
+            m = np.clip(np.ceil(np.linalg.norm(d, axis=1) * cam.K[0, 0] / 12.0), 1, 512).astype(int)
+            edge = np.repeat(np.arange(len(n)), m)
+            k = np.arange(len(edge)) - np.repeat(np.cumsum(m) - m, m)
+            n = cam.distort_normalized(a[edge] + (k / m[edge])[:, None] * d[edge])
         return n @ cam.K[:2, :2].T + cam.K[:2, 2]
 
 
@@ -386,8 +385,10 @@ def _clip(poly: np.ndarray, axis: int, bound: float, keep_greater: bool) -> np.n
     """Sutherland-Hodgman clip of a polygon against coordinate `axis` >= / <= bound."""
     if len(poly) == 0:
         return poly
-    out = []
     sign = 1.0 if keep_greater else -1.0
+    if np.all(sign * (poly[:, axis] - bound) >= 0):
+        return poly  # wholly inside: what the loop below would return, vertex for vertex
+    out = []
     m = len(poly)
     for i in range(m):
         a, b = poly[i], poly[(i + 1) % m]
