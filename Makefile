@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup browser demo test test-unit test-compose docker-engine locate-example clean
+.PHONY: setup browser stream-tools demo test test-unit test-compose docker-engine locate-example clean
 
 setup: $(VENV)/.installed
 
@@ -23,11 +23,27 @@ demo: setup
 locate-example: setup
 	$(BIN)/toptag locate --camera examples/rsu-sw-960x720.json --vehicle examples/bus-17.json examples/*.jpg
 
+# Debian packages of the camera-stream tests: ffmpeg (H.264 encoding for `toptag sim record`) and
+# gst-rtsp-server, run by the system python3 through python3-gi, serving the recorded video over RTSP.
+# Installed when missing and root; otherwise those tests skip, naming what is missing.
+STREAM_DEBS := ffmpeg python3-gi gir1.2-gst-rtsp-server-1.0 gstreamer1.0-plugins-good gstreamer1.0-plugins-bad
+
+stream-tools:
+	@if ! dpkg -s $(STREAM_DEBS) >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing $(STREAM_DEBS)"; \
+	    export DEBIAN_FRONTEND=noninteractive; \
+	    apt-get install -y -qq -o DPkg::Lock::Timeout=900 --no-install-recommends $(STREAM_DEBS) >/dev/null \
+	      || { apt-get update -qq -o DPkg::Lock::Timeout=900 && apt-get install -y -qq -o DPkg::Lock::Timeout=900 --no-install-recommends $(STREAM_DEBS) >/dev/null; } \
+	      || echo "could not install $(STREAM_DEBS): the stream tests will skip"; \
+	  else echo "not root: $(STREAM_DEBS) not installed, the stream tests will skip"; fi; \
+	fi
+
 # Every test, in two pytest runs: the suite, then the compose test (tests/test_compose.py, system tier:
 # docker compose up, plain and secured, on a Docker engine that docker-engine installs where missing;
 # skipped with the reason where Docker cannot run). test-compose runs the compose test alone.
 COMPOSE_TESTS := tests/test_compose.py
-test: setup docker-engine browser
+test: setup docker-engine browser stream-tools
 	$(BIN)/python -m pytest -q --ignore=$(COMPOSE_TESTS)
 	$(BIN)/python -m pytest -q $(COMPOSE_TESTS)
 

@@ -24,6 +24,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("replay",): ("services.replay:main", "republish a recording with its original pacing"),
     ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
     ("sim", "run"): ("sim.live:main", "live simulator: RSU frames and bus sensors over Zenoh"),
+    ("sim", "record"): ("sim.record:main", "one RSU's rendered frames as a video file with its truth"),
     ("bench", "latency"): ("services.bench_latency:main", "capture-to-arrival latency through router and RSU"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("bench", "filter"): ("sim.bench_filter:main", "cost of the bus filter's add_fix, add_imu, estimate"),
