@@ -1,0 +1,163 @@
+"""Calibration targets in the simulator: boards held in front of a camera and AprilTag plates laid on
+the ground, rendered with the same image model as the RSU frames, so that tests and `toptag eval
+calibration` recover known intrinsics and extrinsics.
+
+- A board (ChArUco or chessboard, toptag.calibration.boards) is a flat printed texture at any pose in
+  the camera frame. Every pixel's exact undistorted ray (sim.raster) meets the board plane; the texel it
+  hits gives its grey level; pixels whose footprint crosses a texel edge or the board's outline are
+  supersampled (model.supersample² samples, box filter), as sim.render does for tags. The board is
+  composited over the camera's background, then blurred, gain-applied, noised and JPEG-compressed with
+  the model's values.
+- A ground plate is a tag plate lying on the road: rendered by sim.render as a tagged box a few
+  millimetres thick (`ground_plate`), so plates get exactly the tag pattern, corner order and image
+  model of the bus roofs. Its surveyed points are the four outer corners of the tag's black square.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from sim.image_model import ImageModel
+from sim.raster import raster_for
+from sim.render import PlacedVehicle, encode_jpeg, sample_offsets
+from toptag.camera import Camera
+from toptag.geometry import vehicle_to_world
+from toptag.vehicle import FAMILY_BITS, Vehicle, VehicleFile
+
+PLATE_THICKNESS = 0.004  # m: the plate's top (its tag plane) above the road
+
+
+def _board_homography(R_cb, t_cb, texel: float, origin_texels) -> np.ndarray:
+    """Normalized camera coords (x/z, y/z, 1) -> homogeneous texel coords (col, row, 1) of a board whose
+    point X_board maps to the camera as R_cb X + t_cb; texel (0, 0) is at board coords -origin_texels·texel."""
+    R = np.asarray(R_cb, float)
+    M = np.column_stack([R[:, 0], R[:, 1], np.asarray(t_cb, float)])  # (a, b, 1) -> ray direction
+    H = np.linalg.inv(M)
+    S = np.array([[1.0 / texel, 0.0, origin_texels[0]], [0.0, 1.0 / texel, origin_texels[1]], [0.0, 0.0, 1.0]])
+    return S @ H
+
+
+def _texel_lookup(levels: np.ndarray, H: np.ndarray, xn, yn):
+    """(value, inside) of the texture along normalized rays; a ray meets the plane at depth 1/w, so
+    w <= 0 means behind the camera (outside)."""
+    w = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
+    c = (H[0, 0] * xn + H[0, 1] * yn + H[0, 2]) / w
+    r = (H[1, 0] * xn + H[1, 1] * yn + H[1, 2]) / w
+    h, wdt = levels.shape
+    inside = (c >= 0) & (c < wdt) & (r >= 0) & (r < h) & (w > 0)
+    ci = np.clip(c, 0, wdt - 1).astype(np.intp)
+    ri = np.clip(r, 0, h - 1).astype(np.intp)
+    return np.where(inside, levels[ri, ci], 0.0).astype(np.float32), inside
+
+
+def render_board(camera: Camera, levels: np.ndarray, texel: float, R_cb, t_cb, origin_texels=(0.0, 0.0),
+                 model: ImageModel | None = None, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Gray uint8 frame of `camera` seeing a flat texture (`levels`, grey levels per texel of `texel`
+    metres; row 0 at the top) posed by X_cam = R_cb · X_board + t_cb, where board x runs along the
+    texture's columns and y along its rows. origin_texels: texel coordinates of the board origin."""
+    model = ImageModel() if model is None else model
+    rng = np.random.default_rng() if rng is None else rng
+    levels = np.asarray(levels, np.float32)
+    rast = raster_for(camera)
+    H = _board_homography(R_cb, t_cb, texel, origin_texels)
+    value, inside = _texel_lookup(levels, H, rast.xn.astype(np.float64), rast.yn.astype(np.float64))
+    if not inside.any():
+        raise ValueError("the board is not in view")
+    ys, xs = np.nonzero(inside)
+    y0, y1 = max(0, ys.min() - 2), min(rast.height, ys.max() + 3)
+    x0, x1 = max(0, xs.min() - 2), min(rast.width, xs.max() + 3)
+    val, ins = value[y0:y1, x0:x1], inside[y0:y1, x0:x1]
+    alpha = ins.astype(np.float32)
+    premult = val * alpha
+    if model.supersample > 1:
+        key = np.where(ins, val, -1.0)
+        edge = np.zeros(key.shape, bool)
+        dh, dv = key[:, 1:] != key[:, :-1], key[1:, :] != key[:-1, :]
+        edge[:, 1:] |= dh
+        edge[:, :-1] |= dh
+        edge[1:, :] |= dv
+        edge[:-1, :] |= dv
+        edge = cv2.dilate(edge.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        ey, ex = np.nonzero(edge)
+        if len(ey):
+            offs = sample_offsets(model.supersample)
+            # Sub-pixel rays first order in the exact per-pixel map (as sim.render does).
+            gy, gx = ey + y0, ex + x0
+            xm, xp = np.maximum(gx - 1, 0), np.minimum(gx + 1, rast.width - 1)
+            ym, yp = np.maximum(gy - 1, 0), np.minimum(gy + 1, rast.height - 1)
+            X, Y = rast.xn, rast.yn
+            xu = (X[gy, xp] - X[gy, xm]) / (xp - xm)
+            yu = (Y[gy, xp] - Y[gy, xm]) / (xp - xm)
+            xv = (X[yp, gx] - X[ym, gx]) / (yp - ym)
+            yv = (Y[yp, gx] - Y[ym, gx]) / (yp - ym)
+            sx = X[gy, gx][:, None] + xu[:, None] * offs[None, :, 0] + xv[:, None] * offs[None, :, 1]
+            sy = Y[gy, gx][:, None] + yu[:, None] * offs[None, :, 0] + yv[:, None] * offs[None, :, 1]
+            v, i = _texel_lookup(levels, H, sx.astype(np.float64), sy.astype(np.float64))
+            alpha[ey, ex] = i.mean(axis=1)
+            premult[ey, ex] = (v * i).mean(axis=1)
+    F = rast.radiance.copy()
+    F[y0:y1, x0:x1] = F[y0:y1, x0:x1] * (1.0 - alpha) + premult
+    return finish(rast, F, model, rng)
+
+
+def finish(rast, radiance: np.ndarray, model: ImageModel, rng: np.random.Generator) -> np.ndarray:
+    """The image model's camera steps on a radiance image: blur, gain, sensor noise, JPEG."""
+    F = cv2.GaussianBlur(radiance, (0, 0), model.blur_sigma) if model.blur_sigma > 0 else radiance
+    out = cv2.convertScaleAbs(F, alpha=model.gain)
+    if model.noise_sigma > 0:
+        cv2.setRNGSeed(int(rng.integers(1, 2 ** 31 - 1)))
+        cv2.randn(rast.noise, 0.0, float(model.noise_sigma))
+        cv2.add(out, rast.noise, dst=out, dtype=cv2.CV_8U)
+    if model.jpeg_quality > 0:
+        out = cv2.imdecode(np.frombuffer(encode_jpeg(out, model.jpeg_quality), np.uint8), cv2.IMREAD_GRAYSCALE)
+    return out
+
+
+# ---- ground plates ------------------------------------------------------------------------------
+def plate_vehicle(tag_id: int, size: float, family: str = "tag36h11") -> Vehicle:
+    """A tag plate as a thin tagged box: `size` is the tag's black square, the plate adds its white border."""
+    cells = FAMILY_BITS[family] + 2
+    side = size * (cells + 2) / cells
+    return Vehicle(VehicleFile(id=f"plate-{family}-{tag_id}", height=PLATE_THICKNESS, family=family, length=side,
+                               width=side, tags=[{"id": int(tag_id), "size": float(size)}]))
+
+
+def ground_plate(tag_id: int, size: float, x: float, y: float, yaw: float = 0.0,
+                 family: str = "tag36h11") -> PlacedVehicle:
+    """A plate lying on the road at (x, y), its printed top toward `yaw`; white like paper."""
+    return PlacedVehicle(plate_vehicle(tag_id, size, family), x, y, yaw, color=200.0)
+
+
+def plate_corners_world(plate: PlacedVehicle) -> np.ndarray:
+    """(4, 3) world corners of the plate's tag (the surveyed points), detector order."""
+    v = plate.vehicle
+    tid = v.tag_ids[0]
+    return vehicle_to_world(v.tag_corners(tid), plate.x, plate.y, plate.yaw, plate.roof_z)
+
+
+# ---- board views --------------------------------------------------------------------------------
+def board_poses(camera: Camera, board_size: tuple[float, float], n: int, rng: np.random.Generator,
+                distance: tuple[float, float] = (0.8, 1.3), max_tilt_deg: float = 40.0,
+                grid: tuple[int, int] = (5, 4)) -> list[tuple[np.ndarray, np.ndarray]]:
+    """n board poses (R_cb, t_cb) as a careful operator takes them: the board centre aimed at the cells of
+    a grid over the image in turn (corners and edges included, where the board is partly out of view),
+    at a random distance, tilted by up to max_tilt_deg about a random axis in the board plane."""
+    from toptag.geometry import rodrigues
+
+    gx, gy = grid
+    cells = [((i + 0.5) / gx, (j + 0.5) / gy) for j in range(gy) for i in range(gx)]
+    cells = [cells[k] for k in rng.permutation(len(cells))]
+    out = []
+    for k in range(n):
+        fx, fy = cells[k % len(cells)]
+        px = np.array([[(fx + rng.uniform(-0.3, 0.3) / gx) * camera.width - 0.5,
+                        (fy + rng.uniform(-0.3, 0.3) / gy) * camera.height - 0.5]])
+        ray = np.append(camera.normalized(px)[0], 1.0)
+        centre = ray / np.linalg.norm(ray) * rng.uniform(*distance)
+        axis_angle = rng.uniform(0, 2 * np.pi)
+        tilt = np.deg2rad(rng.uniform(0.35, 1.0) * max_tilt_deg)
+        spin = rng.uniform(-0.3, 0.3)
+        R = rodrigues(np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0]) * tilt) @ rodrigues([0.0, 0.0, spin])
+        t = centre - R @ np.array([board_size[0] / 2, board_size[1] / 2, 0.0])
+        out.append((R, t))
+    return out
