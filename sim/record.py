@@ -133,7 +133,7 @@ def record(world: World, rsu_id: str, out: Path, start_s: float, duration_s: flo
     doc = {"video": out.name, "rsu": rsu_id, "codec": codec, "crf": crf if codec == "h264" else None, "fps": fps,
            "start_s": start_s, "t_ns_of": "scenario time of the frame's capture; frame k at start_s + k / fps",
            "image_model": model.describe().replace("no JPEG", f"{codec} video instead of JPEG"),
-           "camera": camera.to_model().model_dump(),
+           "camera": camera.to_model().model_dump(exclude_none=True),
            "vehicles": {b: world.vehicle(b).to_dict() for b in world.bus_ids},
            "frames": frames}
     truth_path(out).write_text(json.dumps(doc, indent=1))

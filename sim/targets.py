@@ -161,3 +161,33 @@ def board_poses(camera: Camera, board_size: tuple[float, float], n: int, rng: np
         t = centre - R @ np.array([board_size[0] / 2, board_size[1] / 2, 0.0])
         out.append((R, t))
     return out
+
+
+def plate_layout(camera: Camera, n: int = 8, size: float = 1.0, distance: tuple[float, float] = (7.0, 19.0),
+                 half_angle_deg: float = 24.0, family: str = "tag36h11", first_id: int = 0) -> list[PlacedVehicle]:
+    """n ground plates spread over a camera's view: in pairs left and right of its heading, from near to
+    far (zig-zag in azimuth), each facing the camera."""
+    from sim.sampling import camera_heading
+
+    c = camera.center
+    heading = camera_heading(camera)
+    rows = (n + 1) // 2
+    out = []
+    for i in range(n):
+        row = i // 2
+        d = distance[0] + (distance[1] - distance[0]) * (row / max(1, rows - 1))
+        side = -1.0 if i % 2 == 0 else 1.0
+        az = side * half_angle_deg * (1.0 if row % 2 == 0 else 0.45)
+        a = heading + np.radians(az)
+        out.append(ground_plate(first_id + i, size, c[0] + d * np.cos(a), c[1] + d * np.sin(a), a + np.pi, family))
+    return out
+
+
+def surveyed_points(plates: list[PlacedVehicle], survey_sigma: float, rng: np.random.Generator) -> dict:
+    """A points file (toptag.calibration.points) for plates, their corners surveyed with N(0, sigma) per axis."""
+    out = {"survey_sigma": survey_sigma, "plates": []}
+    for k, p in enumerate(plates):
+        C = plate_corners_world(p)
+        out["plates"].append({"id": f"P{k + 1}", "family": p.vehicle.family, "tag_id": p.vehicle.tag_ids[0],
+                              "corners": (C + rng.normal(0.0, survey_sigma, C.shape)).tolist()})
+    return out

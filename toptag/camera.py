@@ -1,6 +1,13 @@
 """Calibrated pinhole camera with OpenCV lens distortion (SPEC.md: camera file).
 
 X_cam = R_wc · X_world + T_wc; pixels in OpenCV convention ((0, 0) is the centre of the top-left pixel).
+
+A camera file may carry an optional `calibration` block (written by `toptag calibrate`, docs/site.md):
+how the intrinsics and the extrinsics were measured and how well. Its `extrinsics.covariance` (6x6 over
+a rotation vector about the camera axes, R_wc -> exp(w)·R_wc, in rad, and the camera centre in the site
+frame, in m) is carried into every fix's covariance: a fix is never more certain than the camera that
+saw it. Files without the block stay valid (the extrinsics are then taken as exact). A block with
+intrinsics but no extrinsics marks a camera not yet placed in the site: services refuse it.
 """
 from __future__ import annotations
 
@@ -21,6 +28,70 @@ from toptag.inputs import InputError, describe_validation_error, read_json
 ROTATION_TOLERANCE = 1e-6
 
 
+def _check_matrix(v: list[list[float]], n: int) -> list[list[float]]:
+    c = np.asarray(v, dtype=float)
+    if c.shape != (n, n):
+        raise ValueError(f"must be a {n}x{n} matrix")
+    if not np.all(np.isfinite(c)):
+        raise ValueError("must be finite")
+    scale = max(1e-30, float(np.max(np.abs(c))))
+    if np.max(np.abs(c - c.T)) > 1e-9 * scale:
+        raise ValueError("must be symmetric")
+    if np.min(np.linalg.eigvalsh((c + c.T) / 2)) < -1e-9 * scale:
+        raise ValueError("must be positive semi-definite")
+    return v
+
+
+class IntrinsicsRecord(BaseModel):
+    """How the intrinsics were calibrated (toptag calibrate intrinsics)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    rms_px: float = Field(ge=0, description="reprojection RMS per corner over all views (OpenCV's)")
+    views: int = Field(ge=0)
+    sigma_px: float = Field(ge=0, description="corner noise per coordinate estimated from the residuals")
+    std: dict[str, float] = Field(default_factory=dict, description="standard deviation per parameter")
+    coverage: float = Field(ge=0, le=1, description="share of the image the views covered")
+    uncovered_corners: list[str] = Field(default_factory=list)
+    parameters: list[str] = Field(default_factory=lambda: ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"])
+    covariance: list[list[float]] | None = None
+    board: str | None = None
+
+    @field_validator("covariance")
+    @classmethod
+    def _cov(cls, v):
+        return v if v is None else _check_matrix(v, 9)
+
+
+class ExtrinsicsRecord(BaseModel):
+    """How the extrinsics were calibrated (toptag calibrate extrinsics); covariance is what fixes carry."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    covariance: list[list[float]] = Field(description="6x6: rotation about camera x, y, z (rad), centre x, y, z (m)")
+    rms_px: float | None = Field(default=None, ge=0)
+    points: int | None = Field(default=None, ge=0)
+    sigma_px: float | None = Field(default=None, ge=0)
+    chi2_dof: float | None = Field(default=None, ge=0)
+    parameters: str | None = None
+    rotation_std_deg: list[float] | None = None
+    centre_std_m: list[float] | None = None
+    roof_mapping_sigma_m: dict | None = None
+
+    @field_validator("covariance")
+    @classmethod
+    def _cov(cls, v):
+        return _check_matrix(v, 6)
+
+
+class CalibrationRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    intrinsics: IntrinsicsRecord | None = None
+    extrinsics: ExtrinsicsRecord | None = None
+    date: str | None = None
+
+
 class CameraFile(BaseModel):
     """The camera JSON as it is stored and sent (the RSU calibration)."""
 
@@ -33,6 +104,7 @@ class CameraFile(BaseModel):
     dist: list[float] = Field(default_factory=lambda: [0.0] * 5)
     R_wc: list[list[float]]
     T_wc: list[float]
+    calibration: CalibrationRecord | None = None
 
     @field_validator("width", "height")
     @classmethod
@@ -80,7 +152,8 @@ class CameraFile(BaseModel):
 class Camera:
     """One calibrated camera. All methods take and return numpy arrays; no I/O but `load`."""
 
-    def __init__(self, id: str, width: int, height: int, K, dist, R_wc, T_wc):
+    def __init__(self, id: str, width: int, height: int, K, dist, R_wc, T_wc,
+                 calibration: CalibrationRecord | None = None):
         self.id = id
         self.width = int(width)
         self.height = int(height)
@@ -91,11 +164,21 @@ class Camera:
         self.t = np.asarray(T_wc, dtype=float).reshape(3)
         self.K_inv = np.linalg.inv(self.K)
         self.has_distortion = bool(np.any(d != 0.0))
+        self.calibration = calibration
+        ext = calibration.extrinsics if calibration is not None else None
+        self.extrinsic_covariance: np.ndarray | None = None if ext is None else np.asarray(ext.covariance, float)
+
+    def require_extrinsics(self, source: str = "camera") -> "Camera":
+        """InputError if the file says its extrinsics were never calibrated (intrinsics only)."""
+        c = self.calibration
+        if c is not None and c.intrinsics is not None and c.extrinsics is None:
+            raise InputError(f"{source} {self.id}: extrinsics not calibrated yet (run toptag calibrate extrinsics)")
+        return self
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
     def from_model(cls, m: CameraFile) -> "Camera":
-        return cls(m.id, m.width, m.height, m.K, m.dist, m.R_wc, m.T_wc)
+        return cls(m.id, m.width, m.height, m.K, m.dist, m.R_wc, m.T_wc, m.calibration)
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "camera") -> "Camera":
@@ -125,10 +208,18 @@ class Camera:
 
     def to_model(self) -> CameraFile:
         return CameraFile(id=self.id, width=self.width, height=self.height, K=self.K.tolist(),
-                          dist=self.dist.tolist(), R_wc=self.R.tolist(), T_wc=self.t.tolist())
+                          dist=self.dist.tolist(), R_wc=self.R.tolist(), T_wc=self.t.tolist(),
+                          calibration=self.calibration)
+
+    def to_json(self) -> str:
+        """The camera file's text (no calibration block when there is none: old readers stay happy)."""
+        return self.to_model().model_dump_json(indent=1, exclude_none=True)
 
     def with_extrinsics(self, R_wc, T_wc) -> "Camera":
-        return Camera(self.id, self.width, self.height, self.K, self.dist, R_wc, T_wc)
+        return Camera(self.id, self.width, self.height, self.K, self.dist, R_wc, T_wc, self.calibration)
+
+    def with_calibration(self, calibration: CalibrationRecord | None) -> "Camera":
+        return Camera(self.id, self.width, self.height, self.K, self.dist, self.R, self.t, calibration)
 
     # ---- geometry -----------------------------------------------------------------------------
     @property

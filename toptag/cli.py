@@ -12,7 +12,8 @@ from toptag.errors import ToptagError, report
 
 # command words -> "module:function"; each function takes argv (list[str]) and returns an exit code.
 COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
-    ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images"),
+    ("locate",): ("toptag.locate:main", "estimate a bus pose from RSU images, videos or streams"),
+    ("calibrate",): ("toptag.calibration.cli:main", "calibrate a camera: intrinsics, extrinsics, check"),
     ("demo",): ("services.demo:main", "every service as its own process on a local Zenoh network"),
     ("router",): ("services.router:main", "Zenoh router for the toptag services"),
     ("certs",): ("services.security:main", "generate a CA and TLS certificates for toptag services"),
@@ -37,6 +38,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("eval", "imagemodel"): ("sim.studies.imagemodel:main", "rendered vs real corner errors (simulator calibration)"),
     ("eval", "hamming"): ("sim.studies.hamming:main", "tags recovered vs false decodes per admitted bit error"),
     ("eval", "livefix"): ("sim.studies.livefix:main", "live RSU pipeline's fix bias per RSU (drift thresholds)"),
+    ("eval", "calibration"): ("sim.studies.calibration:main", "calibration targets and their Cramér-Rao ratios"),
 }
 
 

@@ -47,7 +47,7 @@ def perturbed(camera: Camera, delta) -> Camera:
     return camera.with_extrinsics(R, -R @ c)
 
 
-def _project_jacobians(camera: Camera, X: np.ndarray, h_pose: float = 1e-7, h_x: float = 1e-6):
+def project_jacobians(camera: Camera, X: np.ndarray, h_pose: float = 1e-7, h_x: float = 1e-6):
     """Pixels (N,2), d(pixel)/d(pose delta) (N,2,6) and d(pixel)/d(world point) (N,2,3), numerically
     (central differences; the lens model makes analytic ones long)."""
     u0 = camera.project(X)
@@ -73,7 +73,7 @@ def point_covariances(Jx: np.ndarray, survey_sigma: np.ndarray, sigma_px: float)
 def pose_information(camera: Camera, world: np.ndarray, survey_sigma: np.ndarray, sigma_px: float) -> np.ndarray:
     """Fisher information (6,6) of the pose delta from points `world` (N,3) with survey sigmas (N,3) and
     corner noise sigma_px, at `camera`'s pose. Its inverse at the true pose is the Cramér–Rao bound."""
-    _, Jp, Jx = _project_jacobians(camera, world)
+    _, Jp, Jx = project_jacobians(camera, world)
     Ci = np.linalg.inv(point_covariances(Jx, survey_sigma, sigma_px))
     return np.einsum("nik,nij,njl->kl", Jp, Ci, Jp)
 
@@ -148,7 +148,7 @@ def solve_extrinsics(camera: Camera, points: list[ControlPoint], sigma_px: float
                                "(check the points' pixels and world coordinates)")
     cam = start
     for _ in range(4):  # the point covariances depend on the pose: re-evaluate them at each estimate
-        _, _, Jx = _project_jacobians(cam, W)
+        _, _, Jx = project_jacobians(cam, W)
         L = np.linalg.cholesky(np.linalg.inv(point_covariances(Jx, Ssig, sigma_px)))  # C^-1 = L Lᵀ
 
         def whitened(delta, base=cam, L=L):
@@ -160,7 +160,7 @@ def solve_extrinsics(camera: Camera, points: list[ControlPoint], sigma_px: float
         cam = perturbed(cam, step)
         if np.max(np.abs(step[:3])) < 1e-9 and np.max(np.abs(step[3:])) < 1e-7:
             break
-    u, Jp, Jx = _project_jacobians(cam, W)
+    u, Jp, Jx = project_jacobians(cam, W)
     C = point_covariances(Jx, Ssig, sigma_px)
     Ci = np.linalg.inv(C)
     r = P - u

@@ -36,6 +36,7 @@ from toptag.rsu.regions import (
 )
 from toptag.rsu.tracking import SPEED_MARGIN, TrackSettings, VehicleTrack
 from toptag.solvers import PoseSolution, canonical_method, solve
+from toptag.solvers.calibrated import with_calibration
 from toptag.units import s_from_ns
 from toptag.vehicle import Vehicle
 
@@ -252,6 +253,8 @@ class RsuPipeline:
             else:
                 mode = "tracked" if was_tracked else ("acquired" if result.acquired else "waiting")
             sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None
+            if sol is not None:
+                sol = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
             if sol is not None and sol.ok:
                 self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
             elif was_tracked:

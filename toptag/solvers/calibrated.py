@@ -1,0 +1,62 @@
+"""A fix is never more certain than the camera that saw it: the cameras' calibration covariance
+(camera file, `calibration.extrinsics.covariance`) carried into a pose's covariance.
+
+A camera whose pose is off by delta (rotation about its axes, centre shift) moves every ray it casts,
+and the pose solved from those rays moves with it: d(pose) = −A⁻¹ Jᵀ J_c · delta, where J is the
+pixel Jacobian of the level-roof pose (x, y, yaw, z) at the solution, A = JᵀJ plus the roof-height
+prior, and J_c the pixels' Jacobian in each camera's pose delta (toptag.solvers.model.calib_jacobian).
+The pose covariance gains G Σ_c Gᵀ, Σ_c block-diagonal over the cameras. Cameras with no calibration
+covariance count as exact. This error is common to every fix of that camera: the filter sees it as a
+slowly varying bias, not white noise.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from toptag.detection import TagObservation
+from toptag.solvers.common import SIGMA_H_DEFAULT, PoseSolution
+from toptag.solvers.model import build_corners, calib_jacobian, camera_index, evaluate, planar_theta
+from toptag.vehicle import Vehicle
+
+PRIOR_SIGMA_PX = 0.1  # the pixel noise that weighs the height prior when the solution gives none
+
+
+def calibration_covariance(vehicle: Vehicle, observations: list[TagObservation], solution: PoseSolution,
+                           sigma_h: float = SIGMA_H_DEFAULT) -> np.ndarray:
+    """(3,3) covariance over (x, y, yaw) that the observing cameras' calibration uncertainty adds."""
+    used = [o for o in observations if o.tag_id in solution.tags and o.camera.id in solution.cameras
+            and o.tag_id in vehicle.tags]
+    if not used or all(o.camera.extrinsic_covariance is None for o in used):
+        return np.zeros((3, 3))
+    c = build_corners(vehicle, used)
+    z = solution.z if math.isfinite(solution.z) else vehicle.height
+    theta = planar_theta(solution.x, solution.y, solution.yaw, z)
+    J = evaluate(c, theta).J_px[:, :4]
+    s = solution.sigma_px if math.isfinite(solution.sigma_px) and solution.sigma_px > 0 else PRIOR_SIGMA_PX
+    A = J.T @ J
+    A[3, 3] += (s / sigma_h) ** 2 if sigma_h > 0 else 1e12
+    Jc6 = calib_jacobian(c, theta)
+    cam_of_row = np.repeat(camera_index(c), 2)
+    cams = {u.camera.id: u.camera for u in c.units}
+    total = np.zeros((4, 4))
+    for i, cid in enumerate(c.camera_ids):
+        cov = cams[cid].extrinsic_covariance
+        if cov is None:
+            continue
+        Jc = np.where((cam_of_row == i)[:, None], Jc6, 0.0)
+        G = -np.linalg.solve(A, J.T @ Jc)
+        total += G @ cov @ G.T
+    return total[:3, :3]
+
+
+def with_calibration(vehicle: Vehicle, observations: list[TagObservation], solution: PoseSolution) -> PoseSolution:
+    """The solution with the cameras' calibration covariance added to its covariance (in place)."""
+    if solution.ok:
+        try:
+            add = calibration_covariance(vehicle, observations, solution)
+        except np.linalg.LinAlgError:
+            return solution
+        solution.covariance = np.asarray(solution.covariance, float) + add
+    return solution
