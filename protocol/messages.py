@@ -295,6 +295,12 @@ class RsuStatus(Message):
     # What the buses think of this RSU (their RsuDiagnosis of the last seconds): time offset, drift flag.
     diagnoses: list[RsuDiagnosis] = Field(default_factory=list)
     drift_flagged: bool = Field(default=False, description="a bus flags this camera for drift: run toptag calibrate check")
+    # The camera source (toptag.sources); absent from senders that predate them, None for Zenoh frames.
+    source: str | None = Field(default=None, max_length=300, description="the camera source, e.g. 'stream rtsp://…'")
+    source_connected: bool | None = None
+    source_fps: float | None = Field(default=None, ge=0, description="frames read from the source per second")
+    source_reconnects: Count = Field(default=0, description="times the source was reopened after a loss")
+    source_last_error: str | None = Field(default=None, max_length=500, description="the source's last error, one line")
 
 
 class DetectedTag(BaseModel):

@@ -137,21 +137,28 @@ def plate_corners_world(plate: PlacedVehicle) -> np.ndarray:
 
 # ---- board views --------------------------------------------------------------------------------
 def board_poses(camera: Camera, board_size: tuple[float, float], n: int, rng: np.random.Generator,
-                distance: tuple[float, float] = (0.8, 1.3), max_tilt_deg: float = 40.0,
-                grid: tuple[int, int] = (5, 4)) -> list[tuple[np.ndarray, np.ndarray]]:
-    """n board poses (R_cb, t_cb) as a careful operator takes them: the board centre aimed at the cells of
-    a grid over the image in turn (corners and edges included, where the board is partly out of view),
-    at a random distance, tilted by up to max_tilt_deg about a random axis in the board plane."""
+                distance: tuple[float, float] = (0.7, 1.1), max_tilt_deg: float = 45.0,
+                grid: tuple[int, int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """n board poses (R_cb, t_cb) as a careful operator takes them: the board centre aimed in turn at the
+    four image corners (where only the part of the board that covers the corner is in view: ChArUco
+    corners are found on a partly visible board), the middles of the four edges and a 4 x 3 grid inside
+    (whole board in view, the views that fix the focal length), in random order; at a random distance,
+    tilted by up to max_tilt_deg about a random axis in the board plane. grid=(gx, gy): aim at the
+    centres of a gx x gy grid instead."""
     from toptag.geometry import rodrigues
 
-    gx, gy = grid
-    cells = [((i + 0.5) / gx, (j + 0.5) / gy) for j in range(gy) for i in range(gx)]
+    if grid is not None:
+        gx, gy = grid
+        cells = [((i + 0.5) / gx, (j + 0.5) / gy) for j in range(gy) for i in range(gx)]
+    else:
+        cells = ([(x, y) for y in (0.05, 0.95) for x in (0.04, 0.96)] + [(0.5, 0.05), (0.5, 0.95), (0.04, 0.5), (0.96, 0.5)]
+                 + [(float(x), float(y)) for y in np.linspace(0.25, 0.75, 3) for x in np.linspace(0.2, 0.8, 4)])
     cells = [cells[k] for k in rng.permutation(len(cells))]
     out = []
     for k in range(n):
         fx, fy = cells[k % len(cells)]
-        px = np.array([[(fx + rng.uniform(-0.3, 0.3) / gx) * camera.width - 0.5,
-                        (fy + rng.uniform(-0.3, 0.3) / gy) * camera.height - 0.5]])
+        px = np.array([[np.clip(fx + rng.uniform(-0.03, 0.03), 0, 1) * camera.width - 0.5,
+                        np.clip(fy + rng.uniform(-0.03, 0.03), 0, 1) * camera.height - 0.5]])
         ray = np.append(camera.normalized(px)[0], 1.0)
         centre = ray / np.linalg.norm(ray) * rng.uniform(*distance)
         axis_angle = rng.uniform(0, 2 * np.pi)

@@ -23,6 +23,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("view",): ("services.view.app:main", "the intersection live in a browser (Rerun web viewer)"),
     ("record",): ("services.recording:main", "record every message (MCAP) for replay and offline evaluation"),
     ("replay",): ("services.replay:main", "republish a recording with its original pacing"),
+    ("site", "check"): ("sim.site_check:main", "validate a site folder and draw its top view"),
     ("sim", "examples"): ("sim.examples:main", "render example RSU images with ground truth"),
     ("sim", "run"): ("sim.live:main", "live simulator: RSU frames and bus sensors over Zenoh"),
     ("sim", "record"): ("sim.record:main", "one RSU's rendered frames as a video file with its truth"),

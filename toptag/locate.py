@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     try:
-        camera = Camera.load(args.camera)
+        camera = Camera.load(args.camera).require_extrinsics(f"camera file {args.camera}:")
         vehicle = Vehicle.load(args.vehicle)
         settings = DetectorSettings(max_hamming=args.max_hamming, quad_decimate=args.quad_decimate,
                                     quad_sigma=args.quad_sigma, decode_sharpening=args.sharpening,

@@ -32,9 +32,11 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 from urllib.parse import urlsplit
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from toptag.inputs import InputError
 
@@ -46,6 +48,17 @@ OPEN_TIMEOUT_S = 10.0
 READ_TIMEOUT_S = 5.0
 NS = 1_000_000_000
 LIVE_FFMPEG_OPTIONS = "analyzeduration;200000|probesize;65536|fflags;nobuffer"
+
+
+class SourceSettings(BaseModel):
+    """Where an RSU's frames come from (the [camera] table of `toptag rsu --config`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    source: str = Field(default="zenoh", description="zenoh, a stream URL, a video file, /dev/videoN or a folder")
+    capture_latency_ms: float = Field(default=0.0, ge=0, description="camera-to-receiver latency (streams, devices, "
+                                                                     "folders)")
+    rtsp_transport: Literal["tcp", "udp"] = "tcp"
 
 
 class SourceError(InputError):

@@ -1,5 +1,11 @@
 """`toptag rsu`: the RSU service for one camera.
 
+Frames come from --source: `zenoh` (the simulator's frames, the default) or a camera source of
+toptag.sources (an RTSP/HTTP stream, a video file, /dev/videoN, a folder of images), read on its own
+thread that keeps only the newest frame (older ones are dropped and counted), reopens a lost stream
+with backoff while the RSU keeps serving its sessions, and stamps each frame with its capture time
+(the source's own timestamps where it has them, else the receive time minus --capture-latency-ms).
+
 Idle while no bus is in session: frames arrive and are dropped undecoded. A bus's Approach (or, for an
 RSU started late, the answer to a session query) adds its code bag to the pipeline; the RSU then
 detects only those tags and publishes one PoseFix per bus per frame, stamped with the frame's capture
@@ -37,6 +43,7 @@ from toptag.camera import Camera
 from toptag.hostclock import HostClockProbe
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.solvers import METHODS
+from toptag.sources import LatestFrameReader, SourceSettings, open_source, parse_source
 from toptag.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
@@ -45,9 +52,11 @@ DIAGNOSIS_SHOWN_S = 10.0  # a bus's diagnosis of this RSU is shown in RsuStatus 
 
 
 class RsuSettings(ServiceSettings):
-    """`toptag rsu --config FILE`: [zenoh] and [pipeline] (toptag.rsu.pipeline.PipelineSettings)."""
+    """`toptag rsu --config FILE`: [zenoh], [pipeline] (toptag.rsu.pipeline.PipelineSettings) and [camera]
+    (toptag.sources.SourceSettings: source, capture_latency_ms, rtsp_transport)."""
 
     pipeline: PipelineSettings = PipelineSettings()
+    camera: SourceSettings = SourceSettings()
 
 
 @dataclass
@@ -66,8 +75,10 @@ class RsuService:
     """Wires one RsuPipeline to Zenoh. Session changes arrive on Zenoh threads and are applied by the
     frame loop between frames, so the pipeline is only ever touched by one thread."""
 
-    def __init__(self, session, camera: Camera, intersection: str, settings: PipelineSettings | None = None):
+    def __init__(self, session, camera: Camera, intersection: str, settings: PipelineSettings | None = None,
+                 source: LatestFrameReader | None = None):
         self.session = session
+        self.source = source  # None: frames from Zenoh
         self.camera = camera
         self.rsu_id = camera.id
         self.intersection = intersection
@@ -94,7 +105,9 @@ class RsuService:
             subscribe_messages(session, keys.rsu_diagnosis(intersection, self.rsu_id, keys.ANY), RsuDiagnosis,
                                self._on_diagnosis, self.msg_counters, log),
         ]
-        self._frames = latest_receiver(session, keys.frame(self.rsu_id), Frame, self.msg_counters, log)
+        self._frames = (latest_receiver(session, keys.frame(self.rsu_id), Frame, self.msg_counters, log)
+                        if source is None else None)
+        self._bad_logged = 0
         self._watch = watch_buses(session, intersection,
                                   on_appear=lambda bus: self._changes.put(("appear", bus)),
                                   on_vanish=lambda bus: self._changes.put(("leave", bus, "liveliness lost")),
@@ -181,31 +194,56 @@ class RsuService:
 
     # ---- frames -------------------------------------------------------------------------------
     def handle_frame(self, frame: Frame) -> None:
-        c = self.counters
-        c.frames_received += 1
+        """A Zenoh frame: decoded only while a bus is in session, and only when the pipeline searches some
+        region of it."""
+        self.counters.frames_received += 1
         if not self._sessions:
-            c.frames_idle += 1  # no bus announced: no decoding, no detection
+            self.counters.frames_idle += 1  # no bus announced: no decoding, no detection
             return
+        self.process_gray(lambda: frame_to_gray(frame), frame.capture_time_ns, frame.seq, frame.clock)
 
-        def decode():  # only when the pipeline searches some region of this frame
-            gray = frame_to_gray(frame)
+    def handle_captured(self, frame) -> None:
+        """A frame of a camera source (toptag.sources.CapturedFrame), already decoded by the reader."""
+        self.counters.frames_received += 1
+        if not self._sessions:
+            self.counters.frames_idle += 1
+            return
+        self.process_gray(frame.gray, frame.capture_time_ns, frame.index)
+
+    def _bad_frame(self, message: str, reason: str = "frame") -> None:
+        self.counters.frames_bad += 1
+        self.msg_counters.inc(REJECTED, "Frame", keys.frame(self.rsu_id), reason=reason, error=message)
+        # one line per bad frame, but a stream that goes on sending bad frames is not allowed to flood the log
+        if self._bad_logged < 20 or self.counters.frames_bad % 100 == 0:
+            log.warning("dropped frame: %s", message)
+            self._bad_logged += 1
+
+    def process_gray(self, image, capture_time_ns: int, seq: int, clock=None) -> None:
+        """Detect and publish. image: the gray frame, or a function that decodes it (called only when some
+        region is searched). clock: the clock that stamped capture_time_ns (a Zenoh frame's, when the
+        sender says); None: this host's (a camera source's frames are stamped on receipt here)."""
+        c = self.counters
+
+        def checked() -> np.ndarray:
+            try:
+                gray = image() if callable(image) else image
+            except ProtocolError as e:
+                raise ProtocolError(f"frame {seq}: {e}", e.reason) from None
             if gray.shape != (self.camera.height, self.camera.width):
-                raise ProtocolError(f"frame {frame.seq}: {gray.shape[1]}x{gray.shape[0]} from a "
-                                    f"{self.camera.width}x{self.camera.height} camera", reason="frame")
+                raise ProtocolError(f"frame {seq}: {gray.shape[1]}x{gray.shape[0]} from a "
+                                    f"{self.camera.width}x{self.camera.height} camera", "frame")
             return gray
 
         t0 = time.perf_counter_ns()
         try:
-            result = self.pipeline.process(decode, frame.capture_time_ns, frame.seq)
+            result = self.pipeline.process(checked, capture_time_ns, seq)
         except ProtocolError as e:
-            c.frames_bad += 1
-            self.msg_counters.inc(REJECTED, "Frame", keys.frame(self.rsu_id), reason=e.reason, error=str(e))
-            log.warning("dropped frame: %s", e)
+            self._bad_frame(str(e), e.reason)
             return
         processing_ns = time.perf_counter_ns() - t0
         c.detect_ns.append(processing_ns)
         c.frames_processed += 1
-        clock = frame.clock or clock_to_message(self.clock.current())  # the clock of the capture stamp
+        clock = clock or clock_to_message(self.clock.current())  # the clock of the capture stamp
         published = 0
         for bus, vr in result.vehicles.items():
             if vr.fix is None or bus not in self._fix_pubs:
@@ -215,9 +253,9 @@ class RsuService:
             published += 1
         c.fixes_published += published
         c.frames_with_fix += bool(published)
-        self._detections_pub.put(self.detections(frame, result, processing_ns))
+        self._detections_pub.put(self.detections(capture_time_ns, seq, result, processing_ns))
 
-    def detections(self, frame: Frame, result, processing_ns: int) -> TagDetections:
+    def detections(self, capture_time_ns: int, seq: int, result, processing_ns: int) -> TagDetections:
         """The tags found in this frame, corners as observed (for a view to draw over the image)."""
         tags = []
         for bus, vr in result.vehicles.items():
@@ -226,22 +264,22 @@ class RsuService:
                 corners = ob.raw_corners if ob.raw_corners is not None else ob.corners
                 tags.append(DetectedTag(bus_id=bus, tag_id=int(ob.tag_id), used=int(ob.tag_id) in used,
                                         corners=[(float(u), float(v)) for u, v in corners]))
-        return TagDetections(rsu_id=self.rsu_id, capture_time_ns=frame.capture_time_ns, frame_seq=frame.seq,
-                             width=frame.width, height=frame.height, tags=tags,
+        return TagDetections(rsu_id=self.rsu_id, capture_time_ns=capture_time_ns, frame_seq=seq,
+                             width=self.camera.width, height=self.camera.height, tags=tags,
                              modes={bus: vr.mode for bus, vr in result.vehicles.items()}, processing_ns=processing_ns)
 
     def status(self) -> RsuStatus:
         c = self.counters
         det = c.detect_ns
+        fields = {"frames_skipped": self.msg_counters.get("skipped", "Frame"), **self._source_status()}
         msg = RsuStatus(rsu_id=self.rsu_id, intersection_id=self.intersection, reference_time_ns=time.time_ns(),
                         started_ns=self.started_ns, active_buses=sorted(self._sessions),
-                        frames_received=c.frames_received, frames_processed=c.frames_processed,
-                        frames_skipped=self.msg_counters.get("skipped", "Frame"), frames_idle=c.frames_idle,
+                        frames_received=c.frames_received, frames_processed=c.frames_processed, frames_idle=c.frames_idle,
                         frames_with_fix=c.frames_with_fix, fixes_published=c.fixes_published,
                         active_s=c.active_s, messages_rejected=self.msg_counters.get(REJECTED),
                         detection_ns_mean=int(np.mean(det)) if det else None,
                         detection_ns_max=int(np.max(det)) if det else None,
-                        clock=clock_to_message(self.clock.current()), **self._trust())
+                        clock=clock_to_message(self.clock.current()), **self._trust(), **fields)
         c.detect_ns = []
         return msg
 
@@ -251,6 +289,15 @@ class RsuService:
         recent = [m for m, t in list(self._diagnoses.values()) if now - t <= DIAGNOSIS_SHOWN_S]
         return {"diagnoses": recent, "drift_flagged": any(m.drift_flagged for m in recent)}
 
+    def _source_status(self) -> dict:
+        if self.source is None:
+            return {}
+        st = self.source.stats()
+        return {"source": self.source.source.spec.describe()[:300], "source_connected": st.connected,
+                "source_fps": round(st.fps, 3), "source_reconnects": st.reconnects,
+                "source_last_error": None if st.last_error is None else st.last_error[:500],
+                "frames_skipped": self.msg_counters.get("skipped", "Frame") + st.frames_dropped}
+
     # ---- loop ---------------------------------------------------------------------------------
     def run(self, duration: float | None = None, status_period: float = 1.0) -> None:
         t_end = None if duration is None else time.monotonic() + duration
@@ -258,27 +305,35 @@ class RsuService:
         last = time.monotonic()
         while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):
             self._apply_changes()
-            frame = self._frames.recv(timeout=0.05)
+            if self.source is None:
+                frame, handle = self._frames.recv(timeout=0.05), self.handle_frame
+            else:
+                frame, handle = self.source.get(timeout=0.05), self.handle_captured
             now = time.monotonic()
             if self._sessions:
                 self.counters.active_s += now - last
             last = now
             if frame is not None:
                 try:
-                    self.handle_frame(frame)
+                    handle(frame)
                 except Exception as e:  # a bug on one frame must not stop the RSU
-                    log.exception("frame %s failed: %s", getattr(frame, "seq", "?"), e)
+                    log.exception("frame %s failed: %s", getattr(frame, "seq", getattr(frame, "index", "?")), e)
             if now >= next_status:
                 next_status = now + status_period
                 self._status_pub.put(self.status())
 
     def stop(self) -> None:
         self._stop.set()
+        if self.source is not None:
+            self.source.stop()
 
     def close(self) -> None:
         for s in self._subs:
             s.close()
-        self._frames.close()
+        if self._frames is not None:
+            self._frames.close()
+        if self.source is not None:
+            self.source.close()
         self._watch.close()
         for p in self._fix_pubs.values():
             p.close()
@@ -293,25 +348,50 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--intersection", required=True, help="intersection id (as in the map file)")
     p.add_argument("--method", choices=METHODS, default=None,
                    help=f"solver (default: the settings file's pipeline.method, else {PipelineSettings().method})")
+    p.add_argument("--source", default=None,
+                   help="zenoh (the simulator's frames, default), a stream URL (rtsp://, http://), a video file, "
+                        "/dev/videoN or a folder of images (default: the settings file's camera.source)")
+    p.add_argument("--capture-latency-ms", type=float, default=None,
+                   help="streams, devices, folders: camera-to-RSU latency subtracted from the receive time to give "
+                        "the capture time (measure it once: README, installing at a site); default 0")
+    p.add_argument("--rtsp-transport", choices=("tcp", "udp"), default=None, help="RTSP transport (default tcp)")
     add_service_arguments(p)
     return p
+
+
+def _reader(settings: SourceSettings) -> LatestFrameReader | None:
+    spec = parse_source(settings.source)
+    if spec.kind == "zenoh":
+        return None
+    if spec.kind in ("stream", "device") and settings.capture_latency_ms == 0:
+        log.warning("capture latency 0 ms assumed for %s: measure it and set --capture-latency-ms", spec.describe())
+    src = open_source(spec, capture_latency_ns=int(round(settings.capture_latency_ms * 1e6)), realtime=True,
+                      rtsp_transport=settings.rtsp_transport)
+    return LatestFrameReader(src, log=log).start()
 
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
 
-    def load() -> tuple[Camera, PipelineSettings]:
-        camera = Camera.load(args.camera)
+    def load() -> tuple[Camera, PipelineSettings, SourceSettings]:
+        camera = Camera.load(args.camera).require_extrinsics(f"camera file {args.camera}:")
         keys.frame(camera.id)  # the camera id must be usable as an RSU id on the wire
         keys.approach(args.intersection, "x")
         pipeline = args.settings.pipeline
         if args.method is not None:  # the command line overrides the settings file
             pipeline = pipeline.model_copy(update={"method": args.method})
-        return camera, pipeline
+        given = {"source": args.source, "capture_latency_ms": args.capture_latency_ms,
+                 "rtsp_transport": args.rtsp_transport}
+        camera_source = SourceSettings.model_validate(
+            {**args.settings.camera.model_dump(), **{k: v for k, v in given.items() if v is not None}})
+        parse_source(camera_source.source)  # one line naming what is wrong, before the session opens
+        return camera, pipeline, camera_source
 
     return run_service(
         "rsu", args, load,
-        lambda session, inputs: RsuService(session, inputs[0], args.intersection, inputs[1]),
+        lambda session, inputs: RsuService(session, inputs[0], args.intersection, inputs[1],
+                                           source=_reader(inputs[2])),
         lambda inputs: f"RSU {inputs[0].id} at intersection {args.intersection} "
-                       f"({inputs[0].width}x{inputs[0].height}, {inputs[1].method} solver)",
+                       f"({inputs[0].width}x{inputs[0].height}, {inputs[1].method} solver, frames from "
+                       f"{parse_source(inputs[2].source).describe()})",
         settings=RsuSettings)

@@ -1,0 +1,242 @@
+"""`toptag site check DIR`: validate a site folder (docs/site.md) and draw its top view.
+
+    toptag site check DIR [--out PNG]
+
+Checks every file the folder's site.json names (map, one camera file per RSU, vehicles, the optional
+simulator scenario) and how they fit together: every RSU's intersection is on the map, camera ids are
+unique, every camera's extrinsics are calibrated, no two vehicles share a tag. Prints one line per
+problem (errors: exit 2; warnings: exit 0) and per intersection what its cameras cover: the share of
+the junction box (where the roads cross) that one and two cameras see at roof height (3 m), and warns
+of an intersection no camera covers. Draws the top view (default DIR/site-check.png): roads, approach
+radius, RSU positions, each camera's footprint on the ground and its 8-25 m band at roof height.
+
+Lives in sim/ because it validates the simulator's scenario too; it draws nothing the RSUs compute.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from toptag.camera import Camera
+from toptag.inputs import InputError
+from toptag.site import IntersectionSpec, MapFile, load_site_file
+from toptag.vehicle import Vehicle
+
+ROOF_Z = 3.0
+NEAR, FAR = 8.0, 25.0  # the roof footprint band: horizontal distance from the camera, m
+GROUND_RANGE = 60.0  # ground footprints are drawn to this distance from the camera
+
+
+def _ground_hits(camera: Camera, z: float, max_range: float, n: int = 40) -> np.ndarray:
+    """Where the image border's rays meet the plane z (clipped at max_range horizontally): (M, 2)."""
+    w, h = camera.width, camera.height
+    t = np.linspace(0, 1, n)
+    border = np.vstack([np.column_stack([t * (w - 1), np.zeros(n)]), np.column_stack([np.full(n, w - 1), t * (h - 1)]),
+                        np.column_stack([(1 - t) * (w - 1), np.full(n, h - 1)]), np.column_stack([np.zeros(n), (1 - t) * (h - 1)])])
+    c = camera.center
+    d = camera.rays(border)
+    pts = []
+    for ray in d:
+        if ray[2] < -1e-6 and c[2] > z:
+            s = (z - c[2]) / ray[2]
+            p = c[:2] + s * ray[:2]
+        else:  # at or above the horizon: out to the range limit
+            p = c[:2] + ray[:2] / max(1e-9, np.hypot(*ray[:2])) * max_range
+        v = p - c[:2]
+        r = np.hypot(*v)
+        pts.append(c[:2] + v * min(1.0, max_range / r) if r > 0 else p)
+    return np.array(pts)
+
+
+def sees(camera: Camera, xy: np.ndarray, z: float = ROOF_Z, near: float = 0.0, far: float = np.inf) -> np.ndarray:
+    """(N,) whether points (N,2) at height z are in the image and near..far (horizontal) from the camera."""
+    P = np.column_stack([xy, np.full(len(xy), z)])
+    front = camera.to_camera(P)[:, 2] > 0.5
+    d = np.hypot(*(xy - camera.center[:2]).T)
+    ok = front & (d >= near) & (d <= far)
+    px = np.full((len(xy), 2), -1e9)
+    px[ok] = camera.project(P[ok])
+    return ok & camera.in_image(px)
+
+
+def junction_box(inter: IntersectionSpec, step: float = 0.5) -> np.ndarray:
+    """Grid points (N,2) where the intersection's roads overlap (inside every road's width)."""
+    half = max(r.half_width for r in inter.roads)
+    xs = np.arange(-half, half + step / 2, step)
+    X, Y = np.meshgrid(xs, xs)
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    inside = np.zeros(len(pts), bool)
+    for i, a in enumerate(inter.roads):
+        for b in inter.roads[i + 1:]:
+            ina = np.abs(pts @ _normal(a.heading_deg)) <= a.half_width
+            inb = np.abs(pts @ _normal(b.heading_deg)) <= b.half_width
+            inside |= ina & inb
+    if len(inter.roads) == 1:
+        inside = np.abs(pts @ _normal(inter.roads[0].heading_deg)) <= inter.roads[0].half_width
+    return pts[inside] + np.asarray(inter.center)
+
+
+def _normal(heading_deg: float) -> np.ndarray:
+    a = np.radians(heading_deg)
+    return np.array([-np.sin(a), np.cos(a)])
+
+
+class SiteCheck:
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+        self.errors: list[str] = []
+        self.warnings: list[str] = []
+        self.notes: list[str] = []
+        self.map: MapFile | None = None
+        self.cameras: list[tuple[Camera, str]] = []  # (camera, intersection id)
+        self.vehicles: list[Vehicle] = []
+        self.coverage: dict[str, dict] = {}
+
+    def _load(self, what, loader):
+        try:
+            return loader()
+        except InputError as e:
+            self.errors.append(str(e))
+        except ValueError as e:
+            self.errors.append(f"{what}: {e}")
+        return None
+
+    def run(self) -> "SiteCheck":
+        site = self._load("site.json", lambda: load_site_file(self.folder))
+        if site is None:
+            return self
+        d = self.folder
+        self.map = self._load(site.map, lambda: MapFile.load(d / site.map))
+        ids: dict[str, str] = {}
+        for entry in site.rsus:
+            cam = self._load(entry.camera, lambda e=entry: Camera.load(d / e.camera))
+            if cam is None:
+                continue
+            if cam.id in ids:
+                self.errors.append(f"camera file {entry.camera}: id {cam.id!r} already used by {ids[cam.id]}")
+                continue
+            ids[cam.id] = entry.camera
+            if self._load(entry.camera, lambda c=cam, e=entry: c.require_extrinsics(f"camera file {e.camera}:")) is None:
+                continue
+            if self.map is not None and entry.intersection not in {i.id for i in self.map.intersections}:
+                self.errors.append(f"site file: RSU {cam.id} serves intersection {entry.intersection!r}, which the map "
+                                   f"does not have")
+                continue
+            if cam.extrinsic_covariance is None:
+                self.notes.append(f"camera {cam.id}: no calibration covariance, its extrinsics count as exact "
+                                  "(toptag calibrate extrinsics records one)")
+            self.cameras.append((cam, entry.intersection))
+        owners: dict[tuple[str, int], str] = {}
+        for vf in site.vehicles:
+            v = self._load(vf, lambda vf=vf: Vehicle.load(d / vf))
+            if v is None:
+                continue
+            for t in v.tag_ids:
+                other = owners.setdefault((v.family, t), v.id)
+                if other != v.id:
+                    self.errors.append(f"vehicle file {vf}: tag {v.family} {t} is also on {other} (ambiguous for both)")
+            self.vehicles.append(v)
+        if site.scenario is not None:
+            from sim.scenario import load_scenario
+
+            self._load(site.scenario, lambda: load_scenario(d / site.scenario))
+        if self.map is not None:
+            self._cover()
+        return self
+
+    def _cover(self) -> None:
+        for inter in self.map.intersections:
+            cams = [c for c, i in self.cameras if i == inter.id]
+            box = junction_box(inter)
+            n = np.zeros(len(box), int)
+            for c in cams:
+                n += sees(c, box, ROOF_Z, 0.0, FAR)
+            one, two = float(np.mean(n >= 1)), float(np.mean(n >= 2))
+            self.coverage[inter.id] = {"cameras": [c.id for c in cams], "one": one, "two": two}
+            if not cams or one == 0.0:
+                self.warnings.append(f"intersection {inter.id}: no camera covers it")
+            elif one < 0.9:
+                self.warnings.append(f"intersection {inter.id}: only {100 * one:.0f} % of the junction box is seen by a "
+                                     f"camera at roof height within {FAR:g} m")
+
+    def draw(self, out: Path) -> None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from matplotlib.patches import Circle, Polygon
+
+        fig, ax = plt.subplots(figsize=(8, 8))
+        colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        for inter in self.map.intersections if self.map else []:
+            c = np.asarray(inter.center)
+            for r in inter.roads:
+                a = np.radians(r.heading_deg)
+                u, n = np.array([np.cos(a), np.sin(a)]), _normal(r.heading_deg)
+                L, W = r.length, r.half_width
+                ax.add_patch(Polygon([c + L * u + W * n, c - L * u + W * n, c - L * u - W * n, c + L * u - W * n],
+                                     closed=True, fc="0.85", ec="0.6", lw=0.5, zorder=0))
+            ax.add_patch(Circle(c, inter.radius, fill=False, ls="--", ec="0.3", lw=1))
+            cov = self.coverage.get(inter.id, {})
+            ax.annotate(f"{inter.id}\nseen: {100 * cov.get('one', 0):.0f} % by one, {100 * cov.get('two', 0):.0f} % "
+                        f"by two cameras", c + [0, inter.radius + 2], ha="center", fontsize=8)
+        for k, (cam, _) in enumerate(self.cameras):
+            col = colours[k % len(colours)]
+            ground = _ground_hits(cam, 0.0, GROUND_RANGE)
+            ax.add_patch(Polygon(ground, closed=True, fc=col, alpha=0.08, ec=col, lw=0.8, zorder=1))
+            grid = self._band(cam)
+            if len(grid):
+                ax.plot(grid[:, 0], grid[:, 1], ".", color=col, ms=1.2, alpha=0.5, zorder=2)
+            c = cam.center
+            ax.plot(c[0], c[1], "^", color=col, ms=9, zorder=3)
+            ax.annotate(cam.id, c[:2] + [1, 1], fontsize=8, color=col)
+        ax.set(aspect="equal", xlabel="x east (m)", ylabel="y north (m)",
+               title=f"site {self.folder.name}: ground footprints (shaded), roof-height {NEAR:g}-{FAR:g} m band (dots), "
+                     "approach radius (dashed)")
+        ax.title.set_fontsize(8)
+        ax.autoscale_view()
+        fig.tight_layout()
+        fig.savefig(out, dpi=110)
+        plt.close(fig)
+
+    def _band(self, cam: Camera, step: float = 1.5) -> np.ndarray:
+        c = cam.center[:2]
+        xs = np.arange(-FAR, FAR + step, step)
+        X, Y = np.meshgrid(xs + c[0], xs + c[1])
+        pts = np.column_stack([X.ravel(), Y.ravel()])
+        return pts[sees(cam, pts, ROOF_Z, NEAR, FAR)]
+
+
+def main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="toptag site check", description=__doc__.split("\n\n")[0])
+    p.add_argument("folder", type=Path, metavar="DIR")
+    p.add_argument("--out", type=Path, default=None, help="top view PNG (default DIR/site-check.png)")
+    args = p.parse_args(argv)
+    check = SiteCheck(args.folder).run()
+    for e in check.errors:
+        print(f"error: {e}", file=sys.stderr)
+    for w in check.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    for n in check.notes:
+        print(f"note: {n}")
+    if check.map is not None:
+        print(f"site {args.folder}: {len(check.cameras)} RSU cameras, {len(check.vehicles)} vehicles, "
+              f"{len(check.map.intersections)} intersections")
+        for iid, cov in check.coverage.items():
+            print(f"  {iid}: cameras {', '.join(cov['cameras']) or 'none'}; junction box seen at roof height by one camera "
+                  f"{100 * cov['one']:.0f} %, by two {100 * cov['two']:.0f} %")
+        out = args.out or args.folder / "site-check.png"
+        try:
+            check.draw(out)
+            print(f"top view: {out}")
+        except OSError as e:
+            print(f"error: top view {out}: cannot write ({e.strerror or e})", file=sys.stderr)
+            return 2
+    if check.errors:
+        print(f"site {args.folder}: {len(check.errors)} error(s)", file=sys.stderr)
+        return 2
+    print(f"site {args.folder}: valid" + (f", {len(check.warnings)} warning(s)" if check.warnings else ""))
+    return 0
