@@ -151,12 +151,22 @@ def test_fix_covariance_carries_the_camera_calibration():
     assert plain.ok and carried.ok and plain.x == pytest.approx(carried.x)
     added = carried.covariance - plain.covariance
     assert np.min(np.linalg.eigvalsh(added)) > -1e-12  # only ever adds uncertainty
-    # the added position sigma is about what that calibration does to roof points there (cm, not mm)
-    from toptag.calibration.extrinsics import mapping_sigma
+    # as much as the pose really moves when the camera is off by draws of that covariance (the same
+    # corners re-solved with perturbed cameras)
+    from toptag.detection import TagObservation
+    from toptag.solvers import solve
 
-    roof = np.array([[pv.x, pv.y, bus.height]])
-    expected = mapping_sigma(camera, cov6, roof)[0]
-    assert 0.5 * expected < np.sqrt(added[0, 0] + added[1, 1]) < 1.5 * expected
+    obs = pl.process(gray, 0).vehicles[bus.id].observations
+    rng = np.random.default_rng(0)
+    moved = []
+    for _ in range(60):
+        cam = perturbed(camera, rng.multivariate_normal(np.zeros(6), cov6))
+        s = solve(bus, [TagObservation(o.tag_id, cam.undistort(o.raw_corners), cam, o.raw_corners) for o in obs],
+                  "level", weighting="principled")
+        moved.append([s.x, s.y])
+    empirical = np.sqrt(np.trace(np.cov(np.array(moved).T)))
+    assert 0.7 * empirical < np.sqrt(added[0, 0] + added[1, 1]) < 1.4 * empirical
+    assert empirical > 0.005  # centimetres: the calibration, not the pixels, dominates such a fix
 
 
 @pytest.fixture(scope="module")

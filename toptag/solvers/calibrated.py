@@ -2,9 +2,12 @@
 (camera file, `calibration.extrinsics.covariance`) carried into a pose's covariance.
 
 A camera whose pose is off by delta (rotation about its axes, centre shift) moves every ray it casts,
-and the pose solved from those rays moves with it: d(pose) = −A⁻¹ Jᵀ J_c · delta, where J is the
-pixel Jacobian of the level-roof pose (x, y, yaw, z) at the solution, A = JᵀJ plus the roof-height
-prior, and J_c the pixels' Jacobian in each camera's pose delta (toptag.solvers.model.calib_jacobian).
+and the pose solved from those rays moves with it: d(pose) = −A⁻¹ Jᵀ W J_c · delta, where J is the
+pixel Jacobian of the level-roof pose (x, y, yaw, z) at the solution, W the level solver's corner
+weighting (edge offsets and turns), A = JᵀWJ plus the roof-height prior, and J_c the pixels' Jacobian
+in each camera's pose delta (toptag.solvers.model.calib_jacobian). The roof height absorbs part of a
+camera error (a tilt looks partly like a higher or lower roof), so a fix moves less than a single
+pixel's roof point would.
 The pose covariance gains G Σ_c Gᵀ, Σ_c block-diagonal over the cameras. Cameras with no calibration
 covariance count as exact. This error is common to every fix of that camera: the filter sees it as a
 slowly varying bias, not white noise.
@@ -17,6 +20,7 @@ import numpy as np
 
 from toptag.detection import TagObservation
 from toptag.solvers.common import SIGMA_H_DEFAULT, PoseSolution
+from toptag.solvers.level import TURN_RATIO, edge_whitener, noise_scale
 from toptag.solvers.model import build_corners, calib_jacobian, camera_index, evaluate, planar_theta
 from toptag.vehicle import Vehicle
 
@@ -33,10 +37,14 @@ def calibration_covariance(vehicle: Vehicle, observations: list[TagObservation],
     c = build_corners(vehicle, used)
     z = solution.z if math.isfinite(solution.z) else vehicle.height
     theta = planar_theta(solution.x, solution.y, solution.yaw, z)
-    J = evaluate(c, theta).J_px[:, :4]
+    # Weighted as the level solver weighs corners (edge offsets and turns, toptag.solvers.level), so that
+    # the sensitivity is the estimator's own.
+    T = edge_whitener(c.pixels, TURN_RATIO)
+    J = T @ evaluate(c, theta).J_px[:, :4]
     s = solution.sigma_px if math.isfinite(solution.sigma_px) and solution.sigma_px > 0 else PRIOR_SIGMA_PX
+    s_white = s / noise_scale(TURN_RATIO)
     A = J.T @ J
-    A[3, 3] += (s / sigma_h) ** 2 if sigma_h > 0 else 1e12
+    A[3, 3] += (s_white / sigma_h) ** 2 if sigma_h > 0 else 1e12
     Jc6 = calib_jacobian(c, theta)
     cam_of_row = np.repeat(camera_index(c), 2)
     cams = {u.camera.id: u.camera for u in c.units}
@@ -45,7 +53,7 @@ def calibration_covariance(vehicle: Vehicle, observations: list[TagObservation],
         cov = cams[cid].extrinsic_covariance
         if cov is None:
             continue
-        Jc = np.where((cam_of_row == i)[:, None], Jc6, 0.0)
+        Jc = T @ np.where((cam_of_row == i)[:, None], Jc6, 0.0)
         G = -np.linalg.solve(A, J.T @ Jc)
         total += G @ cov @ G.T
     return total[:3, :3]
