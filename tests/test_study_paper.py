@@ -37,7 +37,7 @@ def small_run(tmp_path_factory):
 
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()) as stdout:
         code = paper.main(["--out", str(out), "--samples", str(SAMPLES), "--seed", "3",
-                           "--cases", "low_flat,low_bounce", "--workers", "2"])
+                           "--cases", "low_flat,low_bounce", "--workers", "2", "--calibration-pool", "2"])
     assert code == 0
     return out, json.loads((out / "results.json").read_text()), err.getvalue(), stdout.getvalue()
 
@@ -62,6 +62,11 @@ def test_results_json_has_the_issue_shape(small_run):
             assert 0.0 < row["pos_rms_m"] < 0.08 and row["pos_rms_2cam_m"] <= row["pos_rms_m"] * 1.0001
             assert row["pos_rms_calib_m"] > row["pos_rms_m"]  # calibration error only adds
     assert set(r["calibration"]) == {"low_flat", "low_bounce"}
+    # the calibration case uses the errors the on-site procedure left, not an assumed 0.05 deg / 2 cm
+    proc = r["calibration_procedure"]
+    assert proc["calibrations_per_camera"] == 2 and set(proc["roof_mapping_rms_m"]) == {"rsu-sw", "rsu-se", "rsu-nw"}
+    assert all(0.001 < v < 0.05 for v in proc["roof_mapping_rms_m"].values())
+    assert "toptag calibrate extrinsics" in r["calibration_error"]
     assert r["samples_per_case"] == SAMPLES and "eval paper" in r["command"]
 
 

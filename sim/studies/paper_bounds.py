@@ -50,7 +50,7 @@ def sample_bounds(s: dict, case: Case, noise: dict[int, EdgeNoise], model: Image
         cam2 = rsu_camera(s["second"], case.width, case.height)
         tags2 = [t for t in s["tags2"] if (cam2.id, t) not in bad]
         v2.append((cam2, tags2, noise_at(noise, s["distance2"])))
-    calib = calibration_sigmas(model)
+    calib = tuple(s["calib_sigmas"]) if s.get("calib_sigmas") else calibration_sigmas(model)
     out = {}
     if tags1:
         c = position_crlb(vehicle, [(cam1, tags1)], s["pose"], n1.sigma_px, case.sigma_h)

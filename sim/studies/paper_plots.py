@@ -136,9 +136,15 @@ def calibration_figure(results: dict, path: Path) -> None:
     h, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(h, labels, loc="center right", fontsize=8.5, frameon=False)
     im = results["image_model"]
-    fig.suptitle(f"With RSU calibration error ({im['calib_rot_sigma_deg']:g}° rotation and "
-                 f"{im['calib_trans_sigma'] * 100:g} cm position per axis, one draw per RSU and sample): the same "
-                 f"images, solved with the miscalibrated cameras", fontsize=10.5)
+    proc = results.get("calibration_procedure")
+    if proc:
+        maps = ", ".join(f"{k} {100 * v:.2f}" for k, v in proc["roof_mapping_rms_m"].items())
+        what = (f"the extrinsics toptag calibrate leaves (8 surveyed ground plates, {proc['calibrations_per_camera']} "
+                f"calibrations per RSU; roof mapping error RMS {maps} cm)")
+    else:
+        what = (f"RSU calibration error ({im['calib_rot_sigma_deg']:g}° rotation and "
+                f"{im['calib_trans_sigma'] * 100:g} cm position per axis, one draw per RSU and sample)")
+    fig.suptitle(f"With {what}: the same images, solved with the miscalibrated cameras", fontsize=10.5)
     fig.text(0.01, 0.005, _footer(results), fontsize=6.5, va="bottom", family="monospace")
     fig.tight_layout(rect=(0, 0.1, 1 - 2.5 / (5.0 * len(cases) + 2.6), 0.92))
     fig.savefig(path, dpi=110)

@@ -14,6 +14,7 @@ from sim.sampling import horizontal_distance, plates_in_view, sector_pose
 from sim.scene import bundled_vehicle, rsu_camera
 from sim.studies.paper_bounds import calibration_sigmas
 from sim.studies.paper_setup import CASES, DISTANCES, NEIGHBOURS, PRIMARY, SOLVERS, VEHICLE
+from toptag.calibration.extrinsics import perturbed
 from toptag.camera import Camera
 from toptag.detection import TagObservation
 from toptag.geometry import vehicle_to_world, wrap_angle
@@ -82,7 +83,7 @@ def _solve_all(vehicle: Vehicle, obs1: list, obs2: list, cams: dict[str, Camera]
 def run_sample(task: tuple) -> dict:
     """One random scene of one case: render, detect once per RSU, solve with every solver, with the
     true and with the miscalibrated cameras; corner errors for the noise measurement."""
-    case_name, index, seed, model_json, speed_max = task
+    case_name, index, seed, model_json, speed_max, calib_errors = task
     case = CASES[case_name]
     model = ImageModel.model_validate_json(model_json)
     rng = sample_rng(seed, case_name, index)
@@ -115,8 +116,14 @@ def run_sample(task: tuple) -> dict:
                                   int(o.tag_id)))
 
     cams_true = {c.id: c for c in (cam1, cam2) if c is not None}
-    cams_bad = {cid: perturb_camera(c, model, rng) for cid, c in cams_true.items()}
-    calib = calibration_sigmas(model)
+    if calib_errors is None:  # the image model's assumed error
+        cams_bad = {cid: perturb_camera(c, model, rng) for cid, c in cams_true.items()}
+        calib = calibration_sigmas(model)
+    else:  # one of the calibrations the procedure left for each RSU
+        pool = calib_errors["deltas"]
+        pick = int(rng.integers(1 << 30))
+        cams_bad = {cid: perturbed(c, pool[cid][(pick + k) % len(pool[cid])]) for k, (cid, c) in enumerate(cams_true.items())}
+        calib = tuple(calib_errors["sigmas"])
     return {
         "case": case_name, "index": index, "bin": bin_m, "distance": horizontal_distance(cam1, pv.x, pv.y),
         "pose": (pv.x, pv.y, pv.yaw, pv.roof_z), "speed": pv.speed,
@@ -126,5 +133,6 @@ def run_sample(task: tuple) -> dict:
         "corner_errors": corner_errors,
         "known": _solve_all(vehicle, obs1, obs2, cams_true, pv, None, case.sigma_h),
         "miscalibrated": _solve_all(vehicle, obs1, obs2, cams_bad, pv, calib, case.sigma_h),
+        "calib_sigmas": calib,
         "seconds": time.perf_counter() - t0,
     }
