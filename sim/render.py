@@ -569,6 +569,12 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
             layers.append(layer)
     if layers:
         _composite(rast, layers, model, out)
+    return sensor_and_stream(rast, out, model, rng)
+
+
+def sensor_and_stream(rast: CameraRaster, out: np.ndarray, model: ImageModel, rng: np.random.Generator) -> np.ndarray:
+    """The model's last steps on a finished (blurred, gain-applied) uint8 frame: sensor noise, then JPEG.
+    Every rendered image goes through here (RSU frames, calibration boards and plates)."""
     if model.noise_sigma > 0:
         cv2.add(out, rast.noise(float(model.noise_sigma), rng), dst=out, dtype=cv2.CV_8U)
     if model.codec != "jpeg":

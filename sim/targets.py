@@ -19,7 +19,7 @@ import numpy as np
 
 from sim.image_model import ImageModel
 from sim.raster import raster_for
-from sim.render import PlacedVehicle, encode_jpeg, sample_offsets
+from sim.render import PlacedVehicle, sample_offsets, sensor_and_stream
 from toptag.camera import Camera
 from toptag.geometry import vehicle_to_world
 from toptag.vehicle import FAMILY_BITS, Vehicle, VehicleFile
@@ -101,16 +101,9 @@ def render_board(camera: Camera, levels: np.ndarray, texel: float, R_cb, t_cb, o
 
 
 def finish(rast, radiance: np.ndarray, model: ImageModel, rng: np.random.Generator) -> np.ndarray:
-    """The image model's camera steps on a radiance image: blur, gain, sensor noise, JPEG."""
+    """The image model's camera steps on a radiance image: blur, gain, then sim.render's sensor noise and JPEG."""
     F = cv2.GaussianBlur(radiance, (0, 0), model.blur_sigma) if model.blur_sigma > 0 else radiance
-    out = cv2.convertScaleAbs(F, alpha=model.gain)
-    if model.noise_sigma > 0:
-        cv2.setRNGSeed(int(rng.integers(1, 2 ** 31 - 1)))
-        cv2.randn(rast.noise, 0.0, float(model.noise_sigma))
-        cv2.add(out, rast.noise, dst=out, dtype=cv2.CV_8U)
-    if model.jpeg_quality > 0:
-        out = cv2.imdecode(np.frombuffer(encode_jpeg(out, model.jpeg_quality), np.uint8), cv2.IMREAD_GRAYSCALE)
-    return out
+    return sensor_and_stream(rast, cv2.convertScaleAbs(F, alpha=model.gain), model, rng)
 
 
 # ---- ground plates ------------------------------------------------------------------------------

@@ -185,15 +185,15 @@ def _rms(values) -> float:
     return float(np.sqrt(np.mean(v ** 2))) if len(v) else float("nan")
 
 
-def summarise(intr: list[IntrinsicsTrial], extr: list[ExtrinsicsTrial]) -> dict:
+def summarise(intr: list[IntrinsicsTrial], extr: list[ExtrinsicsTrial], views_rendered: int | None = None) -> dict:
     out: dict = {}
     if intr:
         f_rms = _rms([t.fx_error_px for t in intr])
         f_bound = _rms([t.fx_bound_px for t in intr])
         u_rms = _rms([t.undistortion_rms_px for t in intr])
         u_bound = _rms([t.undistortion_bound_rms_px for t in intr])
-        out["intrinsics"] = {
-            "trials": len(intr), "views": intr[0].views,
+        out["intrinsics"] = {"views_rendered": views_rendered,
+            "trials": len(intr), "views": intr[0].views, "views_used_min": min(t.views for t in intr),
             "focal_rel_error_max": max(abs(t.focal_rel_error) for t in intr),
             "focal_rel_error_rms": _rms([t.focal_rel_error for t in intr]),
             "focal_target": FOCAL_TARGET,
@@ -225,7 +225,7 @@ def summarise(intr: list[IntrinsicsTrial], extr: list[ExtrinsicsTrial]) -> dict:
 
 
 def _plots(out: Path, intr: list[IntrinsicsTrial], extr: list[ExtrinsicsTrial], example, camera: Camera,
-           model: ImageModel) -> None:
+           model: ImageModel, views: int) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -241,7 +241,7 @@ def _plots(out: Path, intr: list[IntrinsicsTrial], extr: list[ExtrinsicsTrial], 
         ax[0].plot(k, -b, "k_", ms=20)
         ax[0].axhline(100 * FOCAL_TARGET, color="r", ls="--", label="target ±0.05 %")
         ax[0].axhline(-100 * FOCAL_TARGET, color="r", ls="--")
-        ax[0].set(xlabel="trial", ylabel="focal length error (%)", title=f"intrinsics, {intr[0].views} views")
+        ax[0].set(xlabel="trial", ylabel="focal length error (%)", title=f"intrinsics, {views} board views per trial")
         ax[0].legend(fontsize=7)
         ax[1].bar(k - 0.2, [t.undistortion_max_px for t in intr], 0.4, label="max over covered area")
         ax[1].bar(k + 0.2, [t.undistortion_rms_px for t in intr], 0.4, label="RMS")
@@ -306,13 +306,13 @@ def run(out: Path, intrinsic_trials: int = 4, views: int = 20, extrinsic_trials:
         if progress:
             progress(f"extrinsics {i + 1}/{extrinsic_trials}: roof mapping {100 * trial.mapping_rms_m:.2f} cm "
                      f"(bound {100 * trial.bound_rms_m:.2f} cm) ({time.monotonic() - t0:.0f} s)")
-    summary = summarise(intr, extr)
+    summary = summarise(intr, extr, views)
     doc = {"camera": camera.id, "image_model": model.describe(), "board": BOARD, "summary": summary,
            "intrinsic_trials": [vars(t) for t in intr], "extrinsic_trials": [vars(t) for t in extr],
            "extrinsic_covariance_example": example.covariance.tolist() if example else None,
            "seconds": time.monotonic() - t0}
     (out / "results.json").write_text(json.dumps(doc, indent=1))
-    _plots(out, intr, extr, example, camera, model)
+    _plots(out, intr, extr, example, camera, model, views)
     return doc
 
 
@@ -320,7 +320,8 @@ def report(summary: dict) -> str:
     lines = []
     i = summary.get("intrinsics")
     if i:
-        lines += [f"intrinsics ({i['trials']} trials of {i['views']} board views, corner noise {i['corner_sigma_px']:.3f} px):",
+        lines += [f"intrinsics ({i['trials']} trials, {i['views_rendered']} board views each ({i['views_used_min']}+ with the "
+                  f"board found), corner noise {i['corner_sigma_px']:.3f} px):",
                   f"  focal length error max {100 * i['focal_rel_error_max']:.4f} % (target 0.05 %: "
                   f"{'met' if i['focal_ok'] else 'NOT met'}); fx RMS {i['fx_error_rms_px']:.3f} px, "
                   f"{i['fx_ratio_to_bound']:.2f} × its bound {i['fx_bound_px']:.3f} px",
@@ -364,10 +365,10 @@ def main(argv: list[str]) -> int:
 def procedure_errors(cameras: list[Camera], n: int, model: ImageModel, seed: int = 0, progress=None) -> dict:
     """Calibrate each camera's extrinsics n times by the procedure (8 rendered ground plates, 5 mm survey,
     the tool's default pixel sigma) and return what it leaves: per camera id the pose errors (6-vectors in
-    toptag.calibration.extrinsics' convention: rotation about the camera axes, centre shift), and the
+    the convention of toptag.calibration.extrinsics.perturbed: rotation about the camera axes, centre
+    shift), and the
     per-axis sigmas (rotation rad, centre m) of the covariance the tool reported, which a camera file
     would carry."""
-    from toptag.calibration.extrinsics import perturbed  # noqa: F401  (the convention of the deltas)
     from toptag.geometry import rotation_vector
 
     rng = np.random.default_rng([seed, 7171])
