@@ -130,10 +130,15 @@ class SiteCheck:
                                   "(toptag calibrate extrinsics records one)")
             self.cameras.append((cam, entry.intersection))
         owners: dict[tuple[str, int], str] = {}
+        files: dict[str, str] = {}
         for vf in site.vehicles:
             v = self._load(vf, lambda vf=vf: Vehicle.load(d / vf))
             if v is None:
                 continue
+            if v.id in files:
+                self.errors.append(f"vehicle file {vf}: vehicle id {v.id!r} already in {files[v.id]}")
+                continue
+            files[v.id] = vf
             for t in v.tag_ids:
                 other = owners.setdefault((v.family, t), v.id)
                 if other != v.id:

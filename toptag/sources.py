@@ -191,6 +191,8 @@ class VideoSource:
             os.environ.pop("OPENCV_FFMPEG_CAPTURE_OPTIONS", None)
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self.open_timeout_s * 1000),
                   cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(self.read_timeout_s * 1000)]
+        if self.spec.kind == "file" and not Path(self.spec.target).is_file():
+            raise SourceError(f"source {self.spec.target}: no such file")
         if self.spec.kind == "device":
             t = self.spec.target
             index = int(t) if t.isdigit() else int(t.removeprefix("/dev/video"))

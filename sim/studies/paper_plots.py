@@ -198,8 +198,10 @@ def markdown_tables(results: dict) -> str:
                        f"{cr['pos_rms_m'] * 100:.3f} / {cr['pos_rms_2cam_m'] * 100:.3f} | " + " | ".join(cells)
                        + f" | {best_text} |")
     keys = ["sopt", "sopt_principled", "sopt_level", "sopt_2cam", "sopt_level_2cam"]
+    which = ("with the extrinsics toptag calibrate leaves" if results.get("calibration_procedure")
+             else "with the image model's calibration error")
     for case, sec in results["calibration"].items():
-        out.append(f"\n#### {case}: {CASE_TITLES.get(case, case)}, with the image model's calibration error\n")
+        out.append(f"\n#### {case}: {CASE_TITLES.get(case, case)}, {which}\n")
         out.append("| m | bound incl. calibration 1 / 2 RSUs (cm) | " + " | ".join(names[k] for k in keys) + " |")
         out.append("|" + "---|" * (len(keys) + 2))
         for d in sec[keys[0]]:

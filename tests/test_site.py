@@ -1,0 +1,70 @@
+"""A site in files: the demo site is a valid site folder; `toptag site check` names every problem of a
+broken one in one line, warns of an intersection no camera covers and draws the top view."""
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from sim.site_check import SiteCheck
+from sim.scenario import bundled_scenario_path
+from toptag.inputs import InputError
+from toptag.site import load_site_file
+
+DEMO = bundled_scenario_path().parent
+pytestmark = pytest.mark.integration
+
+
+def test_the_demo_site_is_a_valid_site_folder(tmp_path):
+    site = load_site_file(DEMO)
+    assert [r.camera for r in site.rsus] == ["rsu-sw.json", "rsu-se.json", "rsu-ne.json", "rsu-nw.json"]
+    out = tmp_path / "top.png"
+    r = subprocess.run([sys.executable, "-m", "toptag", "site", "check", str(DEMO), "--out", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "x1: cameras rsu-sw, rsu-se, rsu-ne, rsu-nw" in r.stdout and "by one camera 100 %" in r.stdout
+    assert "valid" in r.stdout and "warning" not in r.stderr
+    assert out.stat().st_size > 20_000
+
+
+def test_site_check_names_each_problem_and_warns_of_uncovered_intersections(tmp_path):
+    site = tmp_path / "site"
+    shutil.copytree(DEMO, site, ignore=shutil.ignore_patterns("__init__.py", "__pycache__"))
+    doc = json.loads((site / "site.json").read_text())
+    doc["rsus"][1]["intersection"] = "x9"  # not on the map
+    doc["rsus"][2]["camera"] = "rsu-missing.json"
+    doc["vehicles"] += ["bus-17.json", "bus-99.json"]  # listed twice; another bus with bus-17's tags
+    bus = json.loads((site / "bus-17.json").read_text())
+    (site / "bus-99.json").write_text(json.dumps({**bus, "id": "bus-99"}))
+    (site / "site.json").write_text(json.dumps(doc))
+    m = json.loads((site / "map.json").read_text())
+    m["intersections"].append({"id": "x2", "center": [400.0, 0.0]})  # no camera there
+    (site / "map.json").write_text(json.dumps(m))
+    cam = json.loads((site / "rsu-nw.json").read_text())
+    cam["K"][2] = [0, 0, 2]
+    (site / "rsu-nw.json").write_text(json.dumps(cam))
+
+    check = SiteCheck(site).run()
+    text = "\n".join(check.errors)
+    assert "RSU rsu-se serves intersection 'x9', which the map does not have" in text
+    assert "rsu-missing.json: no such file" in text
+    assert "rsu-nw.json: (top level): K: last row must be [0, 0, 1]" in text
+    assert "vehicle id 'bus-17' already in bus-17.json" in text
+    assert "bus-99.json: tag tag36h11 3 is also on bus-17" in text
+    assert all("\n" not in e for e in check.errors)
+    assert any("intersection x2: no camera covers it" in w for w in check.warnings)
+    assert check.coverage["x1"]["one"] > 0.9  # rsu-sw alone still sees nearly all of x1
+    r = subprocess.run([sys.executable, "-m", "toptag", "site", "check", str(site)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "6 error(s)" in r.stderr
+    assert (site / "site-check.png").exists()
+
+
+def test_a_folder_without_site_json_is_one_line(tmp_path):
+    with pytest.raises(InputError, match=r"site\.json: no such file"):
+        load_site_file(tmp_path)
+    (tmp_path / "site.json").write_text('{"rsus": [{"camera": "a.json"}]}')
+    with pytest.raises(InputError, match=r"rsus\.0\.intersection: Field required"):
+        load_site_file(Path(tmp_path))
