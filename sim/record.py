@@ -30,7 +30,7 @@ import numpy as np
 from sim.render import render
 from sim.scenario import bundled_scenario_path, load_scenario
 from sim.world import NS, World
-from toptag.inputs import InputError
+from toptag.errors import InputError, report
 
 CODECS = ("h264", "mp4v")
 
@@ -164,8 +164,7 @@ def main(argv: list[str]) -> int:
         doc = record(world, args.rsu, args.out, args.start, args.duration, args.fps, args.codec, args.crf,
                      args.images, progress=lambda m: print(f"toptag sim record: {m}", file=sys.stderr))
     except InputError as e:
-        print(f"toptag sim record: {e}", file=sys.stderr)
-        return 2
+        return report("sim record", e)
     seen = sum(1 for f in doc["frames"] if any(v["tags_in_view"] for v in f["vehicles"].values()))
     print(f"{args.out}: {len(doc['frames'])} frames at {doc['fps']:g} fps ({args.codec}), a tag in view in {seen}; "
           f"truth in {truth_path(args.out)}")

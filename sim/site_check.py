@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from toptag.camera import Camera
-from toptag.inputs import InputError
+from toptag.errors import InputError
 from toptag.site import IntersectionSpec, MapFile, load_site_file
 from toptag.vehicle import Vehicle
 

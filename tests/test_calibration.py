@@ -22,7 +22,6 @@ from toptag.calibration.points import ControlPoint, ControlPoints
 from toptag.camera import Camera
 from toptag.inputs import InputError
 
-pytestmark = pytest.mark.integration
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -36,6 +35,7 @@ def _truth_views(camera, board, poses):
     return views
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("spec", [BOARD, {"type": "chessboard", "squares_x": 9, "squares_y": 7, "square_size": 0.07}])
 def test_rendered_board_corners_are_found_where_they_project(spec):
     camera, model = study_camera(), ImageModel()
@@ -54,6 +54,7 @@ def test_rendered_board_corners_are_found_where_they_project(spec):
     assert np.sqrt(np.mean(err ** 2)) < 0.15 and np.abs(err).max() < 0.5
 
 
+@pytest.mark.integration
 def test_intrinsics_from_20_rendered_views_meet_the_targets():
     camera = study_camera()
     trial, result = intrinsics_trial(camera, 20, ImageModel(), np.random.default_rng(11))
@@ -65,6 +66,7 @@ def test_intrinsics_from_20_rendered_views_meet_the_targets():
     assert 0.5 < result.std["fx"] / trial.fx_bound_px < 2.0
 
 
+@pytest.mark.unit
 def test_intrinsics_refuse_too_few_views_and_an_uncovered_image():
     camera = study_camera()
     board = Board.from_dict(BOARD)
@@ -79,6 +81,7 @@ def test_intrinsics_refuse_too_few_views_and_an_uncovered_image():
         calibrate_intrinsics(corner, (camera.width, camera.height))
 
 
+@pytest.mark.integration
 def test_extrinsics_from_8_plates_reach_their_bound():
     camera, model = study_camera(), ImageModel()
     rng = np.random.default_rng(21)
@@ -92,6 +95,7 @@ def test_extrinsics_from_8_plates_reach_their_bound():
     assert np.sqrt(np.mean([t.single_points_pnp_rms_m ** 2 for t in trials])) > rms
 
 
+@pytest.mark.unit
 def test_extrinsics_refuse_degenerate_layouts_with_the_reason():
     from toptag.calibration.extrinsics import solve_extrinsics
 
@@ -104,6 +108,7 @@ def test_extrinsics_refuse_degenerate_layouts_with_the_reason():
         solve_extrinsics(camera, pts[:3])
 
 
+@pytest.mark.unit
 @pytest.mark.parametrize("bad, message", [
     ({"survey_sigma": 0.005, "points": [{"id": "a", "world": [1, 2], "pixel": [3, 4]}]}, "points.0.world"),
     ({"survey_sigma": 0.005, "points": [{"id": "a", "world": [1, 2, float("nan")], "pixel": [3, 4]}]}, "points.0.world.2"),
@@ -119,6 +124,7 @@ def test_points_file_errors_name_the_field(tmp_path, bad, message):
     assert message in str(e.value) and "\n" not in str(e.value)
 
 
+@pytest.mark.unit
 def test_old_camera_files_stay_valid_and_the_calibration_block_is_checked(tmp_path):
     camera = study_camera()
     assert camera.calibration is None and camera.extrinsic_covariance is None
@@ -131,6 +137,7 @@ def test_old_camera_files_stay_valid_and_the_calibration_block_is_checked(tmp_pa
         Camera.from_dict(data).require_extrinsics("camera file")
 
 
+@pytest.mark.integration
 def test_fix_covariance_carries_the_camera_calibration():
     from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 
@@ -196,6 +203,7 @@ def _toptag(*args, cwd):
                           text=True, timeout=600)
 
 
+@pytest.mark.integration
 def test_calibrate_commands_end_to_end(site_images):
     d = site_images
     boards = sorted(p.name for p in d.glob("board-*.png"))
@@ -231,6 +239,7 @@ def test_calibrate_commands_end_to_end(site_images):
     assert few.returncode == 2 and "at least 10 views" in few.stderr and "plates.png" in few.stderr
 
 
+@pytest.mark.integration
 def test_eval_calibration_prints_targets_and_ratios(tmp_path):
     r = subprocess.run([sys.executable, "-m", "toptag", "eval", "calibration", "--out", str(tmp_path),
                         "--intrinsic-trials", "0", "--extrinsic-trials", "2"], capture_output=True, text=True, timeout=600)

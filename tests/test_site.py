@@ -14,9 +14,9 @@ from toptag.inputs import InputError
 from toptag.site import load_site_file
 
 DEMO = bundled_scenario_path().parent
-pytestmark = pytest.mark.integration
 
 
+@pytest.mark.integration
 def test_the_demo_site_is_a_valid_site_folder(tmp_path):
     site = load_site_file(DEMO)
     assert [r.camera for r in site.rsus] == ["rsu-sw.json", "rsu-se.json", "rsu-ne.json", "rsu-nw.json"]
@@ -29,6 +29,7 @@ def test_the_demo_site_is_a_valid_site_folder(tmp_path):
     assert out.stat().st_size > 20_000
 
 
+@pytest.mark.integration
 def test_site_check_names_each_problem_and_warns_of_uncovered_intersections(tmp_path):
     site = tmp_path / "site"
     shutil.copytree(DEMO, site, ignore=shutil.ignore_patterns("__init__.py", "__pycache__"))
@@ -62,6 +63,7 @@ def test_site_check_names_each_problem_and_warns_of_uncovered_intersections(tmp_
     assert (site / "site-check.png").exists()
 
 
+@pytest.mark.unit
 def test_a_folder_without_site_json_is_one_line(tmp_path):
     with pytest.raises(InputError, match=r"site\.json: no such file"):
         load_site_file(tmp_path)

@@ -110,9 +110,9 @@ def _locate_video(path: str, args, camera: Camera, vehicle: Vehicle, pipeline) -
                               f"{camera.id} is {camera.width}x{camera.height}")
     except SourceError as e:
         source.close()
-        print(f"toptag locate: {e}", file=sys.stderr)
+        code = report("locate", e)
         print(json.dumps({"source": path, "ok": False, "error": str(e)}), flush=True)
-        return 2
+        return code
     code = 0
     try:
         while args.max_frames is None or source.frames_read < args.max_frames:
@@ -123,8 +123,7 @@ def _locate_video(path: str, args, camera: Camera, vehicle: Vehicle, pipeline) -
             except SourceError as e:
                 if spec.kind == "file":
                     break
-                print(f"toptag locate: {e}", file=sys.stderr)
-                code = 2
+                code = report("locate", e)
                 break
             head = {"source": path, "frame": frame.index, "capture_time_ns": frame.capture_time_ns}
             if frame.gray.shape != (camera.height, camera.width):
@@ -132,7 +131,7 @@ def _locate_video(path: str, args, camera: Camera, vehicle: Vehicle, pipeline) -
                        f"{camera.width}x{camera.height}")
                 print(json.dumps({**head, "ok": False, "error": err}), flush=True)
                 continue
-            print(json.dumps({**head, **_result_line(pipeline.process(frame.gray, frame.capture_time_ns),
+            print(json.dumps({**head, **_result_line(pipeline.process(frame.gray, frame.capture_time_ns, frame.index),
                                                      vehicle.id)}), flush=True)
     finally:
         source.close()

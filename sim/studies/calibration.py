@@ -59,6 +59,7 @@ from toptag.calibration.intrinsics import (
 )
 from toptag.calibration.points import ControlPoints
 from toptag.camera import Camera
+from toptag.errors import report
 
 BOARD = {"type": "charuco", "squares_x": 16, "squares_y": 12, "square_size": 0.045, "marker_size": 0.03375,
          "dictionary": "DICT_4X4_100"}
@@ -316,7 +317,7 @@ def run(out: Path, intrinsic_trials: int = 4, views: int = 20, extrinsic_trials:
     return doc
 
 
-def report(summary: dict) -> str:
+def report_lines(summary: dict) -> str:
     lines = []
     i = summary.get("intrinsics")
     if i:
@@ -353,9 +354,8 @@ def main(argv: list[str]) -> int:
         doc = run(args.out, args.intrinsic_trials, args.views, args.extrinsic_trials, args.seed,
                   progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
     except CalibrationError as e:
-        print(f"toptag eval calibration: {e}", file=sys.stderr)
-        return 2
-    print(report(doc["summary"]))
+        return report("eval calibration", e)
+    print(report_lines(doc["summary"]))
     print(f"image model: {doc['image_model']}")
     print(f"wrote {args.out / 'results.json'} and the figures ({doc['seconds']:.0f} s)")
     return 0

@@ -23,7 +23,8 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.errors import InputError
+from toptag.inputs import describe_validation_error, read_json
 
 MARKER_BITS = {"4X4": 4, "5X5": 5, "6X6": 6, "7X7": 7}
 

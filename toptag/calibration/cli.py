@@ -48,7 +48,7 @@ from toptag.calibration.intrinsics import PARAMS, calibrate_intrinsics
 from toptag.calibration.points import ControlPoints
 from toptag.camera import CalibrationRecord, Camera, ExtrinsicsRecord, IntrinsicsRecord
 from toptag.images import read_gray
-from toptag.inputs import InputError
+from toptag.errors import InputError, report
 
 
 def _today() -> str:
@@ -218,6 +218,7 @@ def main(argv: list[str]) -> int:
     run = {"intrinsics": run_intrinsics, "extrinsics": run_extrinsics, "check": run_check}[args.what]
     try:
         return run(args)
-    except (InputError, ValueError) as e:
-        print(f"toptag calibrate: {e}", file=sys.stderr)
-        return 2
+    except InputError as e:
+        return report("calibrate", e)
+    except ValueError as e:  # a loader's own check (e.g. pydantic)
+        return report("calibrate", InputError(str(e)))

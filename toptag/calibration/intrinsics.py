@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from toptag.calibration.boards import BoardView
-from toptag.inputs import InputError
+from toptag.errors import InputError
 
 PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 MIN_VIEWS = 10

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.errors import InputError
+from toptag.inputs import describe_validation_error, read_json
 from toptag.vehicle import FAMILY_BITS
 
 Vec3 = tuple[float, float, float]
