@@ -29,8 +29,9 @@ import numpy as np
 
 from sim.render import render
 from sim.scenario import bundled_scenario_path, load_scenario
-from sim.world import NS, World
+from sim.world import World
 from toptag.errors import InputError, report
+from toptag.units import NS_PER_S
 
 CODECS = ("h264", "mp4v")
 
@@ -115,7 +116,7 @@ def record(world: World, rsu_id: str, out: Path, start_s: float, duration_s: flo
     t_start = time.monotonic()
     try:
         for k in range(n):
-            t_ns = int(round((start_s + k / fps) * NS))
+            t_ns = int(round((start_s + k / fps) * NS_PER_S))
             gray = render(camera, world.vehicles_at(t_ns), world.occluders_at(t_ns), model, rng)
             writer.write(gray)
             if images is not None:

@@ -392,6 +392,6 @@ def main(argv: list[str]) -> int:
         lambda session, inputs: RsuService(session, inputs[0], args.intersection, inputs[1],
                                            source=_reader(inputs[2])),
         lambda inputs: f"RSU {inputs[0].id} at intersection {args.intersection} "
-                       f"({inputs[0].width}x{inputs[0].height}, {inputs[1].method} solver, frames from "
-                       f"{parse_source(inputs[2].source).describe()})",
+                       f"({inputs[0].width}x{inputs[0].height}, {inputs[1].method} solver), frames from "
+                       f"{parse_source(inputs[2].source).describe()}",
         settings=RsuSettings)
