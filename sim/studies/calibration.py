@@ -39,6 +39,7 @@ import numpy as np
 
 from sim.image_model import ImageModel
 from sim.render import render
+from sim.studies import require_plotting
 from sim.targets import board_poses, plate_corners_world, plate_layout, render_board, surveyed_points
 from toptag.calibration.boards import Board
 from toptag.calibration.extrinsics import (
@@ -59,7 +60,7 @@ from toptag.calibration.intrinsics import (
 )
 from toptag.calibration.points import ControlPoints
 from toptag.camera import Camera
-from toptag.errors import report
+from toptag.errors import SetupError, report
 
 BOARD = {"type": "charuco", "squares_x": 16, "squares_y": 12, "square_size": 0.045, "marker_size": 0.03375,
          "dictionary": "DICT_4X4_100"}
@@ -351,9 +352,10 @@ def main(argv: list[str]) -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     try:
+        require_plotting()
         doc = run(args.out, args.intrinsic_trials, args.views, args.extrinsic_trials, args.seed,
                   progress=lambda m: print(f"  {m}", file=sys.stderr, flush=True))
-    except CalibrationError as e:
+    except (CalibrationError, SetupError) as e:
         return report("eval calibration", e)
     print(report_lines(doc["summary"]))
     print(f"image model: {doc['image_model']}")
