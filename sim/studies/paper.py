@@ -37,8 +37,8 @@ Calibration. The paper's RSUs have exactly known extrinsics, and so do the solve
 "calibration" every solver solves the same images again with the extrinsics that toptag's on-site
 procedure actually leaves (sim.studies.calibration.procedure_errors: each RSU calibrated
 CALIBRATION_POOL times by `toptag calibrate extrinsics` on rendered images of 8 surveyed ground plates;
-each sample draws one of those calibrations per RSU), and the calibration-aware solvers are told the
-per-axis sigmas of the covariance the tool reported (--calibration model: the image model's assumed
+each sample draws one of those calibrations per RSU), and the calibration-aware solvers and the bound
+are told those errors' RMS per axis (--calibration model: the image model's assumed
 calib_rot_sigma_deg / calib_trans_sigma drawn by sim.image_model.perturb_camera instead).
 
 Bound. The corner noise is measured per case and whole-metre distance (from the camera that saw the
@@ -154,7 +154,7 @@ def run(out: Path, samples: int = 200, seed: int = 0, cases=tuple(CASES), worker
         "image_model": model.model_dump() | {"describe": model.describe()},
         "calibration_error": ("'cases': extrinsics known exactly (the paper's setting); 'calibration': the same "
                               "images solved with " + (
-                                  calib_errors["describe"] + "; the calibration-aware solvers told the reported sigmas "
+                                  calib_errors["describe"] + "; the calibration-aware solvers (and the bound) told their RMS per axis "
                                   f"{math.degrees(calib_errors['sigmas'][0]):.4f} deg, {calib_errors['sigmas'][1] * 100:.2f} cm "
                                   "per axis" if calib_errors else
                                   "cameras perturbed by the image model's calibration error "
