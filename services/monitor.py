@@ -250,7 +250,9 @@ class Monitor:
                           "messages_rejected": s.messages_rejected,
                           "clock": s.clock.model_dump(), "drift_flagged_in_status": s.drift_flagged,
                           "processing_ms_by_kind": {k: {"frames": n, "mean_ms": round(ms / n, 2)}
-                                                    for k, (n, ms) in sorted(self.work.get(rid, {}).items())}}
+                                                    for k, (n, ms) in sorted(self.work.get(rid, {}).items())},
+                          "source": s.source, "source_connected": s.source_connected, "source_fps": s.source_fps,
+                          "source_reconnects": s.source_reconnects, "source_last_error": s.source_last_error}
                     for rid, s in sorted(self.status.items())}
             for rid in sorted({r for r, _ in self.diagnoses}):
                 rsus.setdefault(rid, {}).update(self._trust(rid))
@@ -320,6 +322,8 @@ class Monitor:
                          f"processed {r['frames_processed']:5d} idle {r['frames_idle']:5d} "
                          f"behind {r['frames_skipped_busy']:3d} detect {det:>8s} fixes {r['fixes_published']}"
                          f"{_trust_cells(r)}")
+            if r.get("source") is not None:
+                lines.append("  " + source_line(r))
         for bus, b in s["buses"].items():
             fe = "-" if b["last_fix_err_m"] is None else f"{100 * b['last_fix_err_m']:.1f} cm"
             ue = "-" if b["last_fused_err_m"] is None else f"{100 * b['last_fused_err_m']:.1f} cm"
@@ -344,6 +348,15 @@ def _trust_cells(r: dict) -> str:
     if r.get("drift_flagged"):
         text += f" DRIFT ({','.join(r['flagged_by'])}: run toptag calibrate check)"
     return text
+
+
+def source_line(r: dict) -> str:
+    """An RSU's camera source as the monitor prints it: what it is, connected or lost, fps, reconnects,
+    the last error (Zenoh-fed RSUs have no source line)."""
+    state = {True: "connected", False: "LOST", None: "-"}[r["source_connected"]]
+    fps = "-" if r["source_fps"] is None else f"{r['source_fps']:.1f} fps"
+    err = f" last error: {r['source_last_error']}" if r["source_last_error"] else ""
+    return f"  source {r['source']} {state} {fps} reconnects {r['source_reconnects']}{err}"
 
 
 def write_report(path: str | Path, summary: dict) -> None:

@@ -306,14 +306,21 @@ class CameraRaster:
                float(model.vignetting))
         img = self._finished.get(key)
         if img is None:
-            f = optics(self.radiance, model)
-            if model.vignetting:
-                f = f * self.vignette(model)
-            img = cv2.convertScaleAbs(f, alpha=model.gain)
+            img = self.develop(self.radiance, model)
             if len(self._finished) >= 4:
                 self._finished.pop(next(iter(self._finished)))
             self._finished[key] = img
         return img
+
+    def develop(self, F: np.ndarray, model, x0: int = 0, y0: int = 0) -> np.ndarray:
+        """The camera's optics on float32 stored grey levels F (the window of the frame at x0, y0): blur and
+        defocus in linear light, vignetting, gain; uint8, before sensor noise. One path for the static
+        background, the vehicles' composite (sim.render) and the calibration targets (sim.targets)."""
+        F = optics(F, model)
+        if model.vignetting:
+            h, w = F.shape
+            F = F * self.vignette(model)[y0:y0 + h, x0:x0 + w]
+        return cv2.convertScaleAbs(F, alpha=model.gain)
 
     def vignette(self, model) -> np.ndarray:
         """float32 (H, W) factor on the stored (gamma-encoded) grey level: light falls off as

@@ -4,7 +4,7 @@
                       [--fps 10] [--codec h264|mp4v] [--crf 18] [--images DIR]
 
 Plays a scenario (default: the bundled demo) from --start seconds for --duration seconds and renders
-what the RSU's camera sees at its frame rate, with the scenario's image model except its JPEG step: the
+what the RSU's camera sees at its frame rate, with the scenario's image model except its codec step: the
 video codec takes its place, as on a real IP camera. Codecs:
     h264   H.264 (libx264, main profile, no B-frames, a key frame every second, constant quality --crf),
            what IP cameras stream; encoded by the `ffmpeg` program (Debian's ffmpeg has libx264;
@@ -105,7 +105,8 @@ def record(world: World, rsu_id: str, out: Path, start_s: float, duration_s: flo
     """Render and encode; returns the truth document (also written beside the video)."""
     camera = world.camera(rsu_id)
     fps = float(fps or world.fps[world.rsu_ids.index(rsu_id)])
-    model = world.model.model_copy(update={"jpeg_quality": 0})
+    # The recorder's encoder is the stream's codec: the image model's own codec step is left out.
+    model = world.model.model_copy(update={"codec": "jpeg", "jpeg_quality": 0})
     n = max(1, int(round(duration_s * fps)))
     rng = np.random.default_rng([world.scenario.seed, 99])
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,7 @@ import numpy as np
 
 from sim.image_model import ImageModel
 from sim.patterns import grid_size, tag_cells
-from sim.raster import CameraRaster, optics, optics_reach, raster_for
+from sim.raster import CameraRaster, optics_reach, raster_for
 from toptag.camera import Camera
 from toptag.geometry import rot_z, vehicle_to_world
 from toptag.vehicle import Vehicle
@@ -573,8 +573,9 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
 
 
 def sensor_and_stream(rast: CameraRaster, out: np.ndarray, model: ImageModel, rng: np.random.Generator) -> np.ndarray:
-    """The model's last steps on a finished (blurred, gain-applied) uint8 frame: sensor noise, then JPEG.
-    Every rendered image goes through here (RSU frames, calibration boards and plates)."""
+    """The model's last steps on a developed uint8 frame (CameraRaster.develop: optics, vignetting, gain):
+    sensor noise, then the stream's codec (an intra-coded H.264/H.265 frame, or JPEG). Every rendered image
+    goes through here (RSU frames, calibration boards and plates)."""
     if model.noise_sigma > 0:
         cv2.add(out, rast.noise(float(model.noise_sigma), rng), dst=out, dtype=cv2.CV_8U)
     if model.codec != "jpeg":
@@ -651,8 +652,5 @@ def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out:
         h, w = l.alpha.shape
         sl = (slice(l.y0 - cy0, l.y0 - cy0 + h), slice(l.x0 - cx0, l.x0 - cx0 + w))
         F[sl] = F[sl] * (1.0 - l.alpha) + l.premult
-    F = optics(F, model)
-    if model.vignetting:
-        F = F * rast.vignette(model)[cy0:cy1, cx0:cx1]
-    img = cv2.convertScaleAbs(F, alpha=model.gain)
+    img = rast.develop(F, model, cx0, cy0)
     out[py0:py1, px0:px1] = img[py0 - cy0:py1 - cy0, px0 - cx0:px1 - cx0]

@@ -6,8 +6,8 @@ calibration` recover known intrinsics and extrinsics.
   the camera frame. Every pixel's exact undistorted ray (sim.raster) meets the board plane; the texel it
   hits gives its grey level; pixels whose footprint crosses a texel edge or the board's outline are
   supersampled (model.supersample² samples, box filter), as sim.render does for tags. The board is
-  composited over the camera's background, then blurred, gain-applied, noised and JPEG-compressed with
-  the model's values.
+  composited over the camera's background, then goes through the image model's camera steps as an RSU
+  frame does (optics in linear light, vignetting, gain, sensor noise, the stream's codec).
 - A ground plate is a tag plate lying on the road: rendered by sim.render as a tagged box a few
   millimetres thick (`ground_plate`), so plates get exactly the tag pattern, corner order and image
   model of the bus roofs. Its surveyed points are the four outer corners of the tag's black square.
@@ -101,9 +101,9 @@ def render_board(camera: Camera, levels: np.ndarray, texel: float, R_cb, t_cb, o
 
 
 def finish(rast, radiance: np.ndarray, model: ImageModel, rng: np.random.Generator) -> np.ndarray:
-    """The image model's camera steps on a radiance image: blur, gain, then sim.render's sensor noise and JPEG."""
-    F = cv2.GaussianBlur(radiance, (0, 0), model.blur_sigma) if model.blur_sigma > 0 else radiance
-    return sensor_and_stream(rast, cv2.convertScaleAbs(F, alpha=model.gain), model, rng)
+    """The image model's camera steps on a whole-frame radiance image, exactly as sim.render takes them:
+    optics, vignetting and gain (CameraRaster.develop), then sensor noise and the stream's codec."""
+    return sensor_and_stream(rast, rast.develop(radiance, model), model, rng)
 
 
 # ---- ground plates ------------------------------------------------------------------------------

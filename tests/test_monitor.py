@@ -20,7 +20,9 @@ def test_monitor_duration_counts_from_the_first_bus_message(router, launch, zeno
     mon = launch(["-m", "toptag", "monitor", "--duration", "1", "--period", "0.2", "--report", str(report)],
                  env={"TOPTAG_ZENOH_MODE": "client", "TOPTAG_ZENOH_CONNECT": router})
     s = zenoh_session("client", connect=[router])
-    status: RsuStatus = make_samples()["RsuStatus"]
+    status: RsuStatus = make_samples()["RsuStatus"].model_copy(update={
+        "source": "stream rtsp://127.0.0.1:8554/cam", "source_connected": False, "source_fps": 0.0,
+        "source_reconnects": 3, "source_last_error": "no stream answered at rtsp://127.0.0.1:8554/cam"})
     # RSU heartbeats alone are not traffic: several times --duration later the monitor still watches.
     for _ in range(15):
         publish(s, key_for(status), status)
@@ -33,3 +35,8 @@ def test_monitor_duration_counts_from_the_first_bus_message(router, launch, zeno
     assert mon.proc.returncode == 0
     summary = json.loads(report.read_text())
     assert "bus-17" in summary["buses"] and status.rsu_id in summary["rsus"]
+    # the camera source as the RSU reports it: in the summary and on the progress table
+    rsu = summary["rsus"][status.rsu_id]
+    assert rsu["source_connected"] is False and rsu["source_reconnects"] == 3
+    assert "source stream rtsp://127.0.0.1:8554/cam LOST 0.0 fps reconnects 3 last error: no stream answered" \
+        in mon.output()
