@@ -153,7 +153,7 @@ def test_locate_reads_an_rtsp_stream(drive, rtsp):
 
 def test_rsu_serves_fixes_from_an_rtsp_stream_that_drops_and_comes_back(drive, rtsp, router, launch, zenoh_session):
     from protocol import keys
-    from protocol.messages import Approach, PoseFix, RsuStatus
+    from protocol.messages import Approach, PoseFix, RsuStatus, TagDetections
     from protocol.transport import MessagePublisher, subscribe_messages
     from toptag.vehicle import VehicleFile
 
@@ -167,6 +167,8 @@ def test_rsu_serves_fixes_from_an_rtsp_stream_that_drops_and_comes_back(drive, r
     subs = [subscribe_messages(session, keys.pose_fix("x1", keys.ANY, keys.ANY), PoseFix,
                                lambda m: fixes.append((time.time_ns(), m))),
             subscribe_messages(session, keys.rsu_status("rsu-sw"), RsuStatus, status.append)]
+    detections: list[TagDetections] = []
+    subs.append(subscribe_messages(session, keys.detections("rsu-sw"), TagDetections, detections.append))
     vehicle = VehicleFile.model_validate(truth["vehicles"]["bus-17"])
     pub = MessagePublisher(session, keys.approach("x1", "bus-17"), Approach)
     stop = threading.Event()
@@ -187,6 +189,11 @@ def test_rsu_serves_fixes_from_an_rtsp_stream_that_drops_and_comes_back(drive, r
         for arrival, fix in fixes[:10]:
             assert np.min(np.hypot(*(path - [fix.x, fix.y]).T)) < 0.15  # on the recorded drive
             assert fix.capture_time_ns <= arrival and arrival - fix.capture_time_ns < 30e9
+        # and the tags it found, for a live view to draw over the stream's frames
+        assert wait_until(lambda: any(m.tags for m in detections), 30), rsu.output()[-3000:]
+        m = next(m for m in detections if m.tags)
+        assert (m.width, m.height) == (960, 720) and m.tags[0].bus_id == "bus-17"
+        assert "Traceback" not in rsu.output()  # no frame failed
         assert wait_until(lambda: status and status[-1].source_connected and status[-1].source_fps, 30)
         s = status[-1]
         assert s.source.startswith("stream rtsp://127.0.0.1") and 2 < s.source_fps < 30
