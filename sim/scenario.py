@@ -43,12 +43,12 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from sim.faults import RsuFault
 from sim.image_model import ImageModel
 from sim.motion import STOP_LINE, ImuModel, Trajectory, bus_trajectory
-from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.inputs import InputError, read_json, validate_model
 from toptag.limits import BUS_MAX_SPEED_MPS
 
 SCENARIO_FILE = "scenario.json"
@@ -206,10 +206,7 @@ def load_scenario(path: str | Path) -> Scenario:
     data = read_json(p, "scenario file")
     if not isinstance(data, dict):
         raise InputError(f"scenario file {p}: must hold a JSON object")
-    try:
-        sc = Scenario.model_validate(data)
-    except ValidationError as e:
-        raise InputError(f"scenario file {p}: {describe_validation_error(e)}") from None
+    sc = validate_model(Scenario, data, f"scenario file {p}")
     base = p.resolve().parent
 
     def resolve(q: str) -> str:

@@ -18,12 +18,11 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    ValidationError,
     field_validator,
     model_validator,
 )
 
-from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.inputs import InputError, read_json, validate_model
 
 ROTATION_TOLERANCE = 1e-6
 
@@ -182,10 +181,7 @@ class Camera:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "camera") -> "Camera":
-        try:
-            return cls.from_model(CameraFile.model_validate(data))
-        except ValidationError as e:
-            raise InputError(f"{source}: {describe_validation_error(e)}") from None
+        return cls.from_model(validate_model(CameraFile, data, source))
 
     @classmethod
     def load(cls, path: str | Path) -> "Camera":

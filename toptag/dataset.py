@@ -32,10 +32,10 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from toptag.camera import Camera
-from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.inputs import InputError, read_model
 from toptag.vehicle import FAMILY_BITS
 
 # Tag corners in the tag's own printed frame (x right, y up), detector order: bottom-left,
@@ -137,10 +137,7 @@ class Dataset:
         path = root / "dataset.json"
         if not path.is_file():
             raise InputError(f"{root}: no dataset.json (docs/real-data.md describes the format)")
-        try:
-            return cls(root, DatasetFile.model_validate(read_json(path, "dataset file")))
-        except ValidationError as e:
-            raise InputError(f"dataset file {path}: {describe_validation_error(e)}") from None
+        return cls(root, read_model(DatasetFile, path, "dataset file"))
 
     def image_path(self, entry: ImageEntry) -> Path:
         return (self.root / entry.file).resolve()

@@ -3,12 +3,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TypeVar
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from toptag.errors import InputError
 
-__all__ = ["InputError", "describe_validation_error", "read_json"]
+__all__ = ["InputError", "describe_validation_error", "read_json", "read_model", "validate_model"]
+
+M = TypeVar("M", bound=BaseModel)
 
 
 def describe_validation_error(e: ValidationError) -> str:
@@ -37,3 +40,16 @@ def read_json(path: str | Path, what: str):
         return json.loads(text)
     except json.JSONDecodeError as e:
         raise InputError(f"{what} {p}: not valid JSON (line {e.lineno}: {e.msg})") from None
+
+
+def validate_model(model: type[M], data, source: str) -> M:
+    """``model`` validated from ``data``, or InputError 'source: field.path: message'."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        raise InputError(f"{source}: {describe_validation_error(e)}") from None
+
+
+def read_model(model: type[M], path: str | Path, what: str) -> M:
+    """A JSON file validated as ``model``, or InputError naming the file (as '<what> <path>') and the problem."""
+    return validate_model(model, read_json(path, what), f"{what} {path}")

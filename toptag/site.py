@@ -12,9 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.inputs import InputError, read_model
 
 
 class RoadSpec(BaseModel):
@@ -61,10 +61,7 @@ class MapFile(BaseModel):
 
     @classmethod
     def load(cls, path: str | Path) -> "MapFile":
-        try:
-            return cls.model_validate(read_json(path, "map file"))
-        except ValidationError as e:
-            raise InputError(f"map file {path}: {describe_validation_error(e)}") from None
+        return read_model(cls, path, "map file")
 
     def nearest(self, x: float, y: float) -> tuple[IntersectionSpec, float]:
         """The closest intersection and the distance to its centre."""
@@ -108,7 +105,4 @@ def load_site_file(folder: str | Path) -> SiteFile:
     if not d.is_dir():
         raise InputError(f"site {d}: not a folder")
     path = d / SITE_FILE
-    try:
-        return SiteFile.model_validate(read_json(path, "site file"))
-    except ValidationError as e:
-        raise InputError(f"site file {path}: {describe_validation_error(e)}") from None
+    return read_model(SiteFile, path, "site file")

@@ -9,12 +9,11 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    ValidationError,
     field_validator,
     model_validator,
 )
 
-from toptag.inputs import InputError, describe_validation_error, read_json
+from toptag.inputs import read_json, validate_model
 
 # Families whose printed layout is the classic one (black square, one-cell white border) and whose
 # patterns both pupil-apriltags and OpenCV know; value = data bits per side.
@@ -88,10 +87,7 @@ class Vehicle:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "vehicle") -> "Vehicle":
-        try:
-            return cls(VehicleFile.model_validate(data))
-        except ValidationError as e:
-            raise InputError(f"{source}: {describe_validation_error(e)}") from None
+        return cls(validate_model(VehicleFile, data, source))
 
     @classmethod
     def load(cls, path: str | Path) -> "Vehicle":

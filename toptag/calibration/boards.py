@@ -21,10 +21,9 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from toptag.errors import InputError
-from toptag.inputs import describe_validation_error, read_json
+from toptag.inputs import read_model
 
 MARKER_BITS = {"4X4": 4, "5X5": 5, "6X6": 6, "7X7": 7}
 
@@ -70,10 +69,7 @@ class Board:
 
     @classmethod
     def load(cls, path: str | Path) -> "Board":
-        try:
-            return cls(BoardFile.model_validate(read_json(path, "board file")))
-        except ValidationError as e:
-            raise InputError(f"board file {path}: {describe_validation_error(e)}") from None
+        return cls(read_model(BoardFile, path, "board file"))
 
     @classmethod
     def from_dict(cls, data: dict) -> "Board":

@@ -22,10 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from toptag.errors import InputError
-from toptag.inputs import describe_validation_error, read_json
+from toptag.inputs import read_model, validate_model
 from toptag.vehicle import FAMILY_BITS
 
 Vec3 = tuple[float, float, float]
@@ -100,17 +99,11 @@ class ControlPoints:
 
     @classmethod
     def load(cls, path: str | Path) -> "ControlPoints":
-        try:
-            return cls(PointsFile.model_validate(read_json(path, "points file")))
-        except ValidationError as e:
-            raise InputError(f"points file {path}: {describe_validation_error(e)}") from None
+        return cls(read_model(PointsFile, path, "points file"))
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "points") -> "ControlPoints":
-        try:
-            return cls(PointsFile.model_validate(data))
-        except ValidationError as e:
-            raise InputError(f"{source}: {describe_validation_error(e)}") from None
+        return cls(validate_model(PointsFile, data, source))
 
     def _sigma(self, s) -> np.ndarray:
         s = self.spec.survey_sigma if s is None else s
