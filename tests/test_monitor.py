@@ -38,8 +38,11 @@ def test_monitor_duration_counts_from_the_first_bus_message(router, launch, zeno
     assert mon.proc.poll() is None, mon.output()[-2000:]
     assert not report.exists()
     truth = GroundTruth(bus_id="bus-17", t_ns=time.time_ns(), x=1.0, y=2.0, yaw=0.0)
-    publish(s, key_for(truth), truth)  # the first bus message: 1 s from now it reports and exits 0
-    assert wait_until(lambda: mon.proc.poll() is not None, 30), mon.output()[-2000:]
+
+    def bus_message() -> bool:  # the first that arrives: 1 s later it reports and exits 0 (truth goes out
+        publish(s, key_for(truth), truth)  # with DROP: on a busy machine one put alone can be shed)
+        return mon.proc.poll() is not None
+    assert wait_until(bus_message, 30, 0.3), mon.output()[-2000:]
     assert mon.proc.returncode == 0
     summary = json.loads(report.read_text())
     assert "bus-17" in summary["buses"] and status.rsu_id in summary["rsus"]
