@@ -9,7 +9,7 @@ import pytest
 
 from sim.faults import RsuFault, faults_from_options
 from sim.motion import ImuModel, bus_trajectory
-from sim.studies.fusion import FixErrorModel, simulate_fixes
+from sim.studies.fusion import STUDY_DRIFT_THRESHOLDS, FixErrorModel, simulate_fixes
 from toptag.fix import Fix
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.fusion.offsets import pose_before
@@ -19,6 +19,11 @@ from toptag.fusion.trust import CALIBRATE_CHECK
 pytestmark = pytest.mark.unit
 
 MS = 1_000_000
+
+
+def study_filter(memory=None, **config) -> BusFilter:
+    """A bus filter with the fusion study's drift thresholds: these tests feed it the study's unbiased fixes."""
+    return BusFilter(FilterConfig(**(STUDY_DRIFT_THRESHOLDS | config)), memory=memory)
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +94,7 @@ def test_an_unknown_offset_widens_the_gate_along_the_track_only(turn):
     rows = [r for r in imu.rows() if r[0] <= traj.t_ns(2.0)]
     outcomes = {}
     for name, direction in (("along", 0.0), ("across", math.pi / 2)):
-        flt = BusFilter()
+        flt = study_filter()
         drive(flt, rows, [(f.t_ns + 50 * MS, f) for f in base if f.t_ns < traj.t_ns(1.8)])
         st = traj.state_at(1.95)
         a = st.yaw + direction
@@ -104,7 +109,7 @@ def test_an_unknown_offset_widens_the_gate_along_the_track_only(turn):
 def test_rsu_offsets_are_estimated_within_3ms_in_one_pass(turn, spec):
     traj, imu = turn
     faults = faults_from_options(clock_offset_ms=spec)
-    flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults, jitter_ms=30))
+    flt = drive(study_filter(), imu, arrivals(fixes_with(traj, faults), faults, jitter_ms=30))
     a = flt.rsu_assessments()
     assert set(a) == {"rsu-sw", "rsu-se", "rsu-ne", "rsu-nw"}
     for rsu, v in a.items():
@@ -133,7 +138,7 @@ def test_with_no_clock_known_the_first_rsu_is_the_time_reference(turn):
     arr = arrivals(fixes_with(traj, faults), faults, jitter_ms=30)
     errs = {}
     for name, feed in (("known", arr), ("unknown", [(a, g) for (a, _), g in zip(arr, _unknown_clocks(f for _, f in arr))])):
-        flt, e = BusFilter(), []
+        flt, e = study_filter(), []
         drive(flt, imu, feed, on_output=lambda t, flt=flt, e=e: e.append(pos_err(flt.estimate(t), traj)))
         errs[name] = math.sqrt(np.mean(np.square(e)))
         if name == "unknown":
@@ -154,7 +159,7 @@ def test_a_known_clock_releases_the_time_reference_by_widening_it(turn):
     first = next(f for f in fixes if f.source == "rsu-sw")
     other = next(f for f in fixes if f.source != "rsu-sw" and f.t_ns > first.t_ns)
     rows = [r for r in imu.rows() if r[0] <= other.t_ns + 20 * MS]
-    flt = BusFilter()
+    flt = study_filter()
     drive(flt, rows, [(first.t_ns + MS, _unknown_clocks([first])[0])])
     before = flt.rsu_assessments()["rsu-sw"].offset_sigma_s
     flt.add_fix(other, arrival_ns=rows[-1][0])
@@ -164,7 +169,7 @@ def test_a_known_clock_releases_the_time_reference_by_widening_it(turn):
 def test_capture_latency_on_a_disciplined_clock_is_estimated_too(turn):
     traj, imu = turn
     faults = faults_from_options(capture_latency_ms="rsu-nw=25")
-    flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
+    flt = drive(study_filter(), imu, arrivals(fixes_with(traj, faults), faults))
     v = flt.rsu_assessments()["rsu-nw"]
     assert v.clock_known and abs(1e3 * v.offset_s - 25.0) < 3.0
 
@@ -179,7 +184,7 @@ def test_out_of_order_replay_reproduces_offsets_and_flags_bit_for_bit(turn):
     shuffled = [(a - 150 * MS + int(rng.uniform(20, 600)) * MS, f) for a, f in in_order]
     first = min(fixes, key=lambda f: f.t_ns)
     shuffled = [(min(a for a, _ in shuffled) - 1, first)] + [s for s in shuffled if s[1] is not first]
-    a, b = drive(BusFilter(), imu, in_order), drive(BusFilter(), imu, shuffled)
+    a, b = drive(study_filter(), imu, in_order), drive(study_filter(), imu, shuffled)
     ea, eb = a.estimate(), b.estimate()
     assert np.array_equal(ea.state, eb.state) and np.array_equal(ea.state_cov, eb.state_cov)
     ra, rb = a.rsu_assessments(), b.rsu_assessments()
@@ -196,7 +201,7 @@ def test_a_turned_camera_is_flagged_and_down_weighted_the_others_not(turn):
     traj, imu = turn
     faults = faults_from_options(drift_deg="rsu-se=0.3@2")
     times = {}
-    flt = BusFilter()
+    flt = study_filter()
 
     def watch(t_ns):
         for rsu in flt.estimate(t_ns).health.flagged_rsus:
@@ -216,7 +221,7 @@ def test_a_turned_camera_is_flagged_and_down_weighted_the_others_not(turn):
 def test_refuse_policy_refuses_a_flagged_rsu(turn):
     traj, imu = turn
     faults = faults_from_options(drift_deg="rsu-se=0.3@2")
-    flt = drive(BusFilter(FilterConfig(flagged_policy="refuse")), imu, arrivals(fixes_with(traj, faults), faults))
+    flt = drive(study_filter(flagged_policy="refuse"), imu, arrivals(fixes_with(traj, faults), faults))
     c = flt.counters()
     assert c["refused_flagged"] > 0 and c["per_source"]["rsu-se"]["refused_flagged"] == c["refused_flagged"]
     assert "refused" in flt.rsu_assessments()["rsu-se"].advice
@@ -227,12 +232,12 @@ def test_the_flag_clears_once_the_camera_agrees_again(turn):
     filter starts from what the last one learnt (flagged), and clears the flag once rsu-se agrees."""
     traj, imu = turn
     faults = faults_from_options(drift_deg="rsu-se=0.5@2")
-    first = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
+    first = drive(study_filter(), imu, arrivals(fixes_with(traj, faults), faults))
     assert first.rsu_assessments()["rsu-se"].flagged
     later = bus_trajectory("left", "w", seed=0, t0_ns=traj.t0_ns + 120 * 10**9)
     imu2 = ImuModel().synthesize(later, 0.0, later.duration, np.random.default_rng(22))
     flagged = []
-    second = BusFilter(memory=first.memory())
+    second = study_filter(memory=first.memory())
     drive(second, imu2, arrivals(fixes_with(later, {}, seed=6), {}),
           on_output=lambda t: flagged.append((later.seconds(t), second.estimate(t).health.flagged_rsus)))
     assert flagged[0][1] == ("rsu-se",)  # still flagged when the next pass starts
@@ -245,7 +250,7 @@ def test_the_flag_clears_once_the_camera_agrees_again(turn):
 def test_no_flag_without_a_fault(turn):
     traj, imu = turn
     for seed in range(3):
-        flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, {}, seed=seed), {}, jitter_ms=30, seed=seed))
+        flt = drive(study_filter(), imu, arrivals(fixes_with(traj, {}, seed=seed), {}, jitter_ms=30, seed=seed))
         assert not any(v.flagged for v in flt.rsu_assessments().values())
 
 
@@ -253,7 +258,7 @@ def test_no_flag_without_a_fault(turn):
 def test_every_fix_path_is_counted(turn):
     traj, imu = turn
     fixes = fixes_with(traj, {})
-    flt = BusFilter(FilterConfig(buffer_s=1.0))
+    flt = study_filter(buffer_s=1.0)
     rows = list(imu.rows())
     extra = [fixes[10].replace(seq=fixes[10].seq),  # a duplicate
              fixes[20].replace(x=float("nan"), seq=10_001),  # invalid
@@ -275,8 +280,8 @@ def test_every_fix_path_is_counted(turn):
 def test_a_new_filter_starts_from_what_the_last_one_learnt(turn):
     traj, imu = turn
     faults = faults_from_options(clock_offset_ms="rsu-ne=40", drift_deg="rsu-se=0.5@2")
-    old = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
-    new = BusFilter(memory=old.memory())
+    old = drive(study_filter(), imu, arrivals(fixes_with(traj, faults), faults))
+    new = study_filter(memory=old.memory())
     rows = list(imu.rows())
     fixes = [f for f in fixes_with(traj, faults, seed=9) if f.t_ns < traj.t_ns(4.0)]
     drive(new, rows[:420], arrivals(fixes, faults))
@@ -288,7 +293,7 @@ def test_a_new_filter_starts_from_what_the_last_one_learnt(turn):
 def test_slots_are_given_up_least_recently_heard_first_and_remembered(turn):
     traj, imu = turn
     faults = faults_from_options(clock_offset_ms="rsu-sw=30")
-    flt = drive(BusFilter(FilterConfig(max_offset_slots=2)), imu, arrivals(fixes_with(traj, faults), faults))
+    flt = drive(study_filter(max_offset_slots=2), imu, arrivals(fixes_with(traj, faults), faults))
     a = flt.rsu_assessments()
     assert len(a) == 4 and all(v.offset_s is not None for v in a.values())
     assert abs(1e3 * a["rsu-sw"].offset_s - 30) < 6  # seen first, given its slot up, remembered
@@ -340,7 +345,7 @@ def test_wire_carries_the_clock_offsets_flags_and_fix_paths(turn):
         back = fix_from_message(fix_to_message(fix, "bus-17", "x1", fix.t_ns + 5 * MS, clock=clock))
         assert back.clock_bound_ns == bound
     faults = faults_from_options(clock_offset_ms="rsu-ne=40", drift_deg="rsu-se=0.3@2")
-    flt = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults))
+    flt = drive(study_filter(), imu, arrivals(fixes_with(traj, faults), faults))
     t = flt.head_ns
     se = assessment_to_message(flt.rsu_assessments()["rsu-se"], "bus-17", "x1", t)
     ne = decode(encode(assessment_to_message(flt.rsu_assessments()["rsu-ne"], "bus-17", "x1", t)), RsuDiagnosis)
@@ -359,11 +364,11 @@ def test_fix_paths_add_up_across_filters(turn):
     filters' fix counts (Health.plus_paths), so the paths count every fix since the agent started."""
     traj, imu = turn
     faults = faults_from_options(clock_offset_ms="rsu-se=30")
-    first = drive(BusFilter(), imu, arrivals(fixes_with(traj, faults), faults)).estimate().health
+    first = drive(study_filter(), imu, arrivals(fixes_with(traj, faults), faults)).estimate().health
     p = first.paths()  # disjoint outcomes; unknown clock and flagged RSU are attributes across them
     assert p["accepted"] + p["rejected"] + p["too_old"] + p["future"] + p["other"] == len(fixes_with(traj, faults))
     assert first.unknown_clock > 0
-    second = drive(BusFilter(), imu, arrivals(fixes_with(traj, {}, seed=9), {})).estimate().health
+    second = drive(study_filter(), imu, arrivals(fixes_with(traj, {}, seed=9), {})).estimate().health
     both = second.plus_paths(first.paths())
     assert both.paths() == {k: first.paths()[k] + second.paths()[k] for k in first.paths()}
     assert (both.status, both.pos_sigma_m, both.flagged_rsus) == (second.status, second.pos_sigma_m, second.flagged_rsus)
