@@ -10,7 +10,7 @@ import math
 
 from protocol.messages import ClockInfo, FusedPose, FusionHealth, PoseFix, RsuDiagnosis
 from toptag.fix import Fix
-from toptag.fusion.outcomes import FixOutcome
+from toptag.fusion.outcomes import FixOutcome, applied_count
 from toptag.fusion.state import FusedState, Health
 from toptag.fusion.trust import RsuAssessment
 from toptag.hostclock import HostClock
@@ -68,7 +68,7 @@ def fused_to_message(state: FusedState, bus_id: str) -> FusedPose:
 def assessment_to_message(a: RsuAssessment, bus_id: str, intersection_id: str, reference_time_ns: int) -> RsuDiagnosis:
     """The wire RsuDiagnosis of a bus filter's assessment of one RSU."""
     fixes = a.fixes
-    accepted = sum(fixes.get(o.value, 0) for o in FixOutcome if o.applied)
+    accepted = applied_count(fixes)
     gated = fixes.get(FixOutcome.REJECTED_GATE.value, 0)
     refused = fixes.get(FixOutcome.REFUSED_FLAGGED.value, 0)
     return RsuDiagnosis(

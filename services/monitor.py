@@ -186,8 +186,9 @@ class Monitor:
             b = self.buses[m.bus_id]
             b.fixes += 1
             b.fixes_by_rsu[m.rsu_id] += 1
-            b.latency_ms.add(ms_from_ns(arrival - m.capture_time_ns))
-            self.all_latency_ms.add(ms_from_ns(arrival - m.capture_time_ns))
+            latency_ms = ms_from_ns(arrival - m.capture_time_ns)
+            b.latency_ms.add(latency_ms)
+            self.all_latency_ms.add(latency_ms)
             b.rsu_ms.add(ms_from_ns(m.publish_time_ns - m.capture_time_ns))
             b.fix_transit_ms.add(ms_from_ns(arrival - m.publish_time_ns))
             if m.processing_ns is not None:

@@ -125,7 +125,7 @@ def test_rsu_offsets_are_estimated_within_3ms_in_one_pass(turn, spec):
 
 
 def _unknown_clocks(fixes):
-    return [Fix(f.t_ns, f.x, f.y, f.yaw, f.cov, f.source, f.seq, clock_bound_ns=None) for f in fixes]
+    return [f.replace(clock_bound_ns=None) for f in fixes]
 
 
 def test_with_no_clock_known_the_first_rsu_is_the_time_reference(turn):

@@ -49,10 +49,11 @@ from sim.studies import require_plotting
 from toptag.errors import InputError, SetupError, report
 from toptag.fix import Fix
 from toptag.fusion.filter import BusFilter, FilterConfig
+from toptag.fusion.outcomes import applied_count
 from toptag.geometry import wrap_angle
 from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.progress import Progress
-from toptag.units import NS_PER_MS, ns_from_ms, ns_from_s, s_from_ns
+from toptag.units import NS_PER_MS, ns_from_ms, s_from_ns
 
 DEFAULT_LATENCIES_MS = (0, 50, 100, 200, 300)
 ROUTES = ("left", "right", "straight", "stop")
@@ -231,7 +232,7 @@ class _TrustLog:
         return np.asarray(self.t), offsets, stats
 
 
-def _arrivals(fixes: list[Fix], delays_ms: np.ndarray, faults: dict[str, RsuFault]) -> list[tuple[int, Fix]]:
+def fix_arrivals(fixes: list[Fix], delays_ms: np.ndarray, faults: dict[str, RsuFault]) -> list[tuple[int, Fix]]:
     """(arrival on the bus's clock, fix): a fix leaves the RSU when the frame has arrived (exposure +
     capture latency = stamp - clock offset) and travels delay ms."""
     out = []
@@ -247,7 +248,7 @@ def run_once(inp: RunInput, fixes: list[Fix], latency_ms: float, jitter_ms: floa
     traj, imu = inp.traj, inp.imu
     faults = faults or {}
     delays = np.maximum(0.0, latency_ms + jitter_ms * rng.standard_normal(len(fixes)))
-    arrivals = _arrivals(fixes, delays, faults)
+    arrivals = fix_arrivals(fixes, delays, faults)
     naive_arr = [(a, f.replace(t_ns=a)) for a, f in arrivals]
     fused = BusFilter(cfg)
     naive = BusFilter(cfg.model_copy(update={"gate_probability": None, "time_offsets": False,
@@ -557,7 +558,7 @@ def _applied_fraction(counters: list[dict], rsu: str) -> float | None:
     for c in counters:
         per = c.get("per_source", {}).get(rsu, {})
         total += sum(per.values())
-        applied += sum(per.get(k, 0) for k in ("accepted", "reacquired", "initialized"))
+        applied += applied_count(per)
     return applied / total if total else None
 
 

@@ -32,8 +32,8 @@ def plots(out: Path, per_case, results, settle_s, inputs, faults, trust_only: bo
         _trajectory(out, per_lat, results, settle_s, inputs, files)
         _nees(out, per_lat, results, settle_s, inputs, files)
     if faults:
-        _offsets(out, per_case, results, inputs, faults, files)
-        _drift(out, per_case, results, settle_s, inputs, faults, files)
+        _offsets(out, per_case, results, faults, files)
+        _drift(out, per_case, results, faults, files)
     return files
 
 
@@ -157,7 +157,7 @@ def _pick_latency(per_lat) -> float:
     return 100.0 if 100.0 in per_lat else lats[len(lats) // 2]
 
 
-def _offsets(out, per_case, results, inputs, faults, files):
+def _offsets(out, per_case, results, faults, files):
     """Each RSU's time-offset estimate over time (all runs, faulted case), with the injected value."""
     import matplotlib.pyplot as plt
 
@@ -188,7 +188,7 @@ def _offsets(out, per_case, results, inputs, faults, files):
     _save(fig, out, "fusion_offsets.png", files)
 
 
-def _drift(out, per_case, results, settle_s, inputs, faults, files):
+def _drift(out, per_case, results, faults, files):
     """Fused error over time (fault-free, faulted, faulted without offset estimation and drift detection)
     and the drift detector's statistic per RSU (run 1)."""
     import matplotlib.pyplot as plt

@@ -60,7 +60,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from toptag.fix import Fix
 from toptag.fusion.offsets import motion_rate, pose_before
-from toptag.fusion.outcomes import FixOutcome, FixRecord, count_outcomes
+from toptag.fusion.outcomes import FixOutcome, FixRecord, applied_count, count_outcomes
 from toptag.fusion.state import (
     STATE_DIM,
     ST_GYRO_BIAS,
@@ -75,7 +75,7 @@ from toptag.fusion.state import (
 )
 from toptag.fusion.trust import DriftRule, RsuAssessment, RsuRecord
 from toptag.geometry import wrap_angle
-from toptag.units import NS_PER_MS, ns_from_s, s_from_ns
+from toptag.units import ns_from_s, s_from_ns
 
 ACQUIRING, TRACKING = 1, 2
 _MODE_NAMES = {ACQUIRING: "acquiring", TRACKING: "tracking"}
@@ -228,7 +228,7 @@ class BusFilter:
         self._healthy_ns = ns_from_s(c.degraded_after_s)
         self._calm_stat = chi2_3dof(c.drift_clear_probability)
         self._drift = DriftRule(c.drift_window_s, chi2_3dof(1.0 - c.drift_false_alarm),
-                                chi2_3dof(c.drift_clear_probability), c.drift_min_pos_m,
+                                self._calm_stat, c.drift_min_pos_m,
                                 math.radians(c.drift_min_yaw_deg), c.drift_isolation_ratio, c.drift_clip_sigma ** 2,
                                 c.drift_min_fixes, c.drift_max_offset_sigma_ms * 1e-3, c.drift_min_others) \
             if c.drift_detection else None
@@ -260,7 +260,6 @@ class BusFilter:
         self._archived_src: dict[str, dict[str, int]] = {}
         self._archived_flagged = 0
         self._unknown_clock = 0
-        self._unknown_clock_src: dict[str, int] = {}
         self._imu_rejected = 0
         self._imu_count = 0
         self._last_rx_delay_ns: int | None = None
@@ -341,7 +340,6 @@ class BusFilter:
             arrival = self._last_imu_t
         if fix.clock_bound_ns is None:
             self._unknown_clock += 1
-            self._unknown_clock_src[fix.source] = self._unknown_clock_src.get(fix.source, 0) + 1
         if fix.problem() is not None:
             return self._count_now(fix, FixOutcome.INVALID)
         if arrival is not None:
@@ -396,18 +394,26 @@ class BusFilter:
             P = self._yaw_rate_noise(P, s_from_ns(t_ns - base.t))
         return self._fused(t_ns, x, P, g, max(0, t_ns - head.t))
 
+    def _totals(self) -> tuple[dict[str, int], int]:
+        """Fix outcome counts and fixes from flagged RSUs: the archived ones plus the buffer's."""
+        counts = dict(self._archived)
+        flagged = self._archived_flagged
+        for r in self._fix_recs:
+            counts[r.outcome.value] += 1
+            flagged += r.flagged
+        return counts, flagged
+
     def counters(self) -> dict:
         """Counts of fix outcomes (final decisions), per source as well, plus IMU counts."""
         self._ensure_clean()
-        live = count_outcomes(r.outcome for r in self._fix_recs)
-        total = {k: self._archived[k] + live[k] for k in live}
+        total, flagged = self._totals()
         per_src: dict[str, dict[str, int]] = {s: dict(v) for s, v in self._archived_src.items()}
         for r in self._fix_recs:
             d = per_src.setdefault(r.fix.source, count_outcomes([]))
             d[r.outcome.value] += 1
         total["fixes"] = sum(total[o.value] for o in FixOutcome)
-        total["applied"] = sum(total[o.value] for o in FixOutcome if o.applied)
-        total["from_flagged_rsu"] = self._archived_flagged + sum(r.flagged for r in self._fix_recs)
+        total["applied"] = applied_count(total)
+        total["from_flagged_rsu"] = flagged
         total["unknown_clock"] = self._unknown_clock
         total["imu_samples"] = self._imu_count
         total["imu_rejected"] = self._imu_rejected
@@ -647,7 +653,7 @@ class BusFilter:
         """Variance (s²) of a new RSU's time offset."""
         if fix.clock_bound_ns is None:
             return self._var0_unknown
-        return self._var0_known + (fix.clock_bound_ns * 1e-9) ** 2
+        return self._var0_known + s_from_ns(fix.clock_bound_ns) ** 2
 
     def _time_reference(self, x, P, g: _Gate, fix: Fix) -> tuple[np.ndarray, np.ndarray, _Gate, bool]:
         """Which time the filter follows. The offsets' common part is seen only through the bus's
@@ -690,8 +696,7 @@ class BusFilter:
         var0, d0 = (self._var0_known if reference else self._offset_prior(fix)), 0.0
         rec = rsus.get(fix.source)
         if rec is not None and rec.offset is not None:
-            d, v = rec.offset
-            v += self._q_d * max(0.0, s_from_ns(fix.t_ns - rec.offset_t))
+            d, v = self._remembered_offset(rec, fix.t_ns)
             d0, var0 = d, min(v, var0)
         if rec is None:
             rsus[fix.source] = RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
@@ -795,7 +800,7 @@ class BusFilter:
         rsu = fix.source
         rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
         rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
-        agrees = (rec.deviation_stat if rec.deviation is not None else rec.stat) < self._calm_stat
+        agrees = rec.statistic() < self._calm_stat
         if offset_before is not None and not rec.flagged and agrees:
             rec = rec._replace(calm_offset=offset_before)
         rsus = dict(g.rsus)
@@ -874,12 +879,8 @@ class BusFilter:
             status = "degraded"
         else:
             status = "ok"
-        counts = dict(self._archived)
-        flagged_fixes = self._archived_flagged
-        for r in self._fix_recs:
-            counts[r.outcome.value] += 1
-            flagged_fixes += r.flagged
-        accepted = sum(counts[o.value] for o in FixOutcome if o.applied)
+        counts, flagged_fixes = self._totals()
+        accepted = applied_count(counts)
         rejected = counts[FixOutcome.REJECTED_GATE.value]
         too_old = counts[FixOutcome.TOO_OLD.value] + counts[FixOutcome.BEFORE_START.value]
         future = counts[FixOutcome.FUTURE.value]
@@ -909,21 +910,23 @@ class BusFilter:
         out = {}
         for rsu, rec in sorted(g.rsus.items()):
             if rsu in g.clocks:
-                i = STATE_DIM + g.clocks.index(rsu)
-                off, var = float(head.x[i]), float(head.P[i, i])
+                off, var = _slot_offset(head, rsu)
             elif rec.offset is not None:
-                off, var = rec.offset
-                var += self._q_d * max(0.0, s_from_ns(head.t - rec.offset_t))
+                off, var = self._remembered_offset(rec, head.t)
             else:
                 off = var = None
             d, C = rec.disagreement(), rec.bias()[1]
-            stat = rec.deviation_stat if rec.deviation is not None else rec.stat
             out[rsu] = RsuAssessment(
                 rsu, off, None if var is None else math.sqrt(max(var, 0.0)), rec.clock_known, rec.flagged,
                 rec.flagged_since, (float(d[0]), float(d[1]), float(d[2])),
-                tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(C)), float(stat), int(rec.last_t),
+                tuple(float(math.sqrt(max(v, 0.0))) for v in np.diag(C)), float(rec.statistic()), int(rec.last_t),
                 dict(per_src.get(rsu, {})), self.cfg.flagged_policy)
         return out
+
+    def _remembered_offset(self, rec: RsuRecord, t_ns: int) -> tuple[float, float]:
+        """An RSU's offset as remembered outside a slot, its variance grown by the walk since then."""
+        off, var = rec.offset
+        return off, var + self._q_d * max(0.0, s_from_ns(t_ns - rec.offset_t))
 
     def memory(self) -> dict[str, RsuRecord]:
         """What a new filter for the same bus may start from (BusFilter(config, memory=...)): every
@@ -935,10 +938,15 @@ class BusFilter:
         out = {}
         for rsu, rec in head.g.rsus.items():
             if rsu in head.g.clocks:
-                i = STATE_DIM + head.g.clocks.index(rsu)
-                rec = rec._replace(offset=(float(head.x[i]), float(head.P[i, i])), offset_t=head.t)
+                rec = rec._replace(offset=_slot_offset(head, rsu), offset_t=head.t)
             out[rsu] = rec
         return out
+
+
+def _slot_offset(step, rsu: str) -> tuple[float, float]:
+    """An RSU's time offset and its variance from its slot in a step's state."""
+    i = STATE_DIM + step.g.clocks.index(rsu)
+    return float(step.x[i]), float(step.P[i, i])
 
 
 class _StepTimes:

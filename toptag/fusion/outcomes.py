@@ -40,6 +40,11 @@ class FixRecord:
     flagged: bool = False  # its RSU was flagged for drift when it was processed (down-weighted or refused)
 
 
+def applied_count(counts: dict[str, int]) -> int:
+    """How many of the counted fixes (outcome value -> count) the filter applied."""
+    return sum(counts.get(o.value, 0) for o in FixOutcome if o.applied)
+
+
 def count_outcomes(outcomes) -> dict[str, int]:
     out = {o.value: 0 for o in FixOutcome}
     for o in outcomes:

@@ -49,6 +49,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from toptag.units import s_from_ns
+
 CALIBRATE_CHECK = "toptag calibrate check --camera CAM.json --points POINTS.json IMAGE"
 
 
@@ -93,6 +95,10 @@ class RsuRecord(NamedTuple):
         """Its disagreement: the deviation from the other RSUs when known, else from the filter."""
         return self.deviation if self.deviation is not None else self.bias()[0]
 
+    def statistic(self) -> float:
+        """The chi-square of that disagreement (the deviation's when known, else the bias's)."""
+        return self.deviation_stat if self.deviation is not None else self.stat
+
 
 def _chi2(d: np.ndarray, C: np.ndarray) -> float:
     try:
@@ -124,7 +130,7 @@ class DriftRule:
         if rec.A is None:
             A, A2, b, sw, sw2 = Si, Si, Si @ nu, 1.0, 1.0
         else:
-            w = math.exp(-max(0, t_ns - rec.last_t) * 1e-9 / self.window_s)
+            w = math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
             A, A2, b = w * rec.A + Si, (w * w) * rec.A2 + Si, w * rec.b + Si @ nu
             sw, sw2 = w * rec.sums[0] + 1.0, w * w * rec.sums[1] + 1.0
         Ai = np.linalg.inv(A)
