@@ -14,9 +14,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import tempfile
 from pathlib import Path
+
+from toptag.machine import cpu_model
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,16 +27,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="write the figures as JSON here")
     p.add_argument("--logs", default=None, help="directory for each process's log (default: a temp dir)")
     return p
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def figures(report: dict) -> dict:
@@ -55,7 +46,7 @@ def figures(report: dict) -> dict:
                  "fused_in_session_ok_fraction": v["fused_in_session_ok_fraction"]}
              for b, v in report.get("buses", {}).items()}
     cpu = report.get("cpu", {})
-    return {"machine": {"nproc": os.cpu_count(), "cpu": _cpu_model()},
+    return {"machine": {"nproc": os.cpu_count(), "cpu": cpu_model()},
             "cpu": {"window_s": cpu.get("window_s"), "cores": cpu.get("cores"), "total_s": cpu.get("total_s"),
                     "seconds": cpu.get("seconds", {})},
             "rsus": rsus,

@@ -21,11 +21,11 @@ import time
 import numpy as np
 
 from sim.motion import ImuModel, bus_trajectory
-from sim.studies.fusion import FixErrorModel, simulate_fixes
+from sim.studies.fusion import FixErrorModel, fix_arrivals, simulate_fixes
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.limits import BUS_MAX_SPEED_MPS
+from toptag.machine import cpu_model, usable_cores
 from toptag.progress import Progress
-from toptag.units import ns_from_ms
 
 
 def _one_run(imu, arrivals, out_every: int, cfg: FilterConfig) -> dict:
@@ -62,7 +62,7 @@ def run(runs: int = 5, latency_ms: float = 100.0, jitter_ms: float = 30.0, seed:
     imu = ImuModel().synthesize(traj, 0.0, traj.duration, rng)
     fixes = simulate_fixes(traj, FixErrorModel(), 4, rng)
     delays = np.maximum(0.0, latency_ms + jitter_ms * rng.standard_normal(len(fixes)))
-    arrivals = sorted(((f.t_ns + ns_from_ms(d), f) for f, d in zip(fixes, delays)), key=lambda a: a[0])
+    arrivals = fix_arrivals(fixes, delays, {})
     best: dict | None = None
     bar = Progress(runs, "toptag bench filter") if progress else None
     for _ in range(runs):
@@ -84,24 +84,8 @@ def run(runs: int = 5, latency_ms: float = 100.0, jitter_ms: float = 30.0, seed:
         "total_per_fix_us": b["total_ns"] / b["fixes"] / 1e3,
         "total_s_per_data_s": b["total_ns"] / 1e9 / traj.duration,
         "runs": runs, "latency_ms": latency_ms, "jitter_ms": jitter_ms, "seed": seed,
-        "machine": f"{platform.machine()}, {_cpu_model()}, nproc {_nproc()}",
+        "machine": f"{platform.machine()}, {cpu_model(unknown='unknown CPU')}, nproc {usable_cores()}",
     }
-
-
-def _cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
-
-
-def _nproc() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def build_parser() -> argparse.ArgumentParser:

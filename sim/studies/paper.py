@@ -64,7 +64,6 @@ import dataclasses
 import json
 import math
 import multiprocessing
-import os
 import sys
 import time
 from pathlib import Path
@@ -80,17 +79,11 @@ from sim.studies.paper_setup import CASES, DISTANCES, NEIGHBOURS, PAPER_CLAIMS, 
 from sim.studies.paper_stats import check_targets, render_table, summarise
 from toptag.errors import SetupError, report
 from toptag.limits import BUS_MAX_SPEED_MPS
+from toptag.machine import usable_cores
 from toptag.progress import Progress
 from toptag.units import kmh_from_mps
 
 CALIBRATION_POOL = 12  # procedure calibrations per RSU for the "calibration" case
-
-def default_workers() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:
-        return max(1, os.cpu_count() or 1)
-
 
 def run(out: Path, samples: int = 200, seed: int = 0, cases=tuple(CASES), workers: int | None = None,
         model: ImageModel | None = None, speed_max: float = BUS_MAX_SPEED_MPS, progress: bool = True,
@@ -104,7 +97,7 @@ def run(out: Path, samples: int = 200, seed: int = 0, cases=tuple(CASES), worker
             raise ValueError(f"unknown case {c!r} (known: {', '.join(CASES)})")
     if samples < 1:
         raise ValueError("--samples must be at least 1")
-    workers = default_workers() if workers is None else max(1, int(workers))
+    workers = usable_cores() if workers is None else max(1, int(workers))
     out.mkdir(parents=True, exist_ok=True)
     # Slowest case first so that the workers finish together.
     order = sorted(cases, key=lambda c: -CASES[c].width * CASES[c].height)
