@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from toptag.camera import Camera
 from toptag.inputs import InputError
-from toptag.units import NS_PER_MS
+from toptag.units import ns_from_ms
 
 
 class Drift(BaseModel):
@@ -65,7 +65,7 @@ class RsuFault(BaseModel):
     @property
     def time_offset_ns(self) -> int:
         """Stamp minus exposure: what the bus should estimate as this RSU's time offset."""
-        return int(round((self.clock_offset_ms + self.capture_latency_ms) * NS_PER_MS))
+        return ns_from_ms(self.clock_offset_ms + self.capture_latency_ms)
 
     @property
     def clock_disciplined(self) -> bool:

@@ -7,8 +7,8 @@ import pytest
 
 from sim.image_model import ImageModel
 from sim.render import PlacedVehicle, render
-from sim.scene import bundled_vehicle, rsu_camera
-from toptag.detection import DetectorSettings, TagDetector, detect_vehicle_tags
+from sim.scene import rsu_camera
+from toptag.detection import TagDetector, detect_vehicle_tags
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.vehicle import Vehicle
 

@@ -25,6 +25,8 @@ import subprocess
 import threading
 from dataclasses import dataclass
 
+from toptag.units import ns_from_s
+
 log = logging.getLogger(__name__)
 
 PHC2SYS_MARGIN_NS = 1_000  # assumed accuracy of phc2sys (system clock to the PTP hardware clock)
@@ -83,7 +85,7 @@ def parse_chronyc_tracking(text: str) -> HostClock | None:
     source = "ptp" if upper.startswith("PHC") else "gnss" if upper.startswith(("PPS", "GPS", "NMEA", "GNSS")) else "ntp"
     bound_s = float(m.group(1)) + dispersion + delay / 2.0
     stratum = f.get("stratum", "?")
-    return HostClock(source, int(round(bound_s * 1e9)),
+    return HostClock(source, ns_from_s(bound_s),
                      f"chrony: reference {name or ref_id}, stratum {stratum}, system time {m.group(1)} s {m.group(2)}, "
                      f"bound {bound_s * 1e3:.3f} ms")
 

@@ -204,7 +204,7 @@ class BusAgent:
             where = dict(self._rsu_intersection)
         out = []
         for rsu, a in assessed.items():
-            if rsu not in where or (now_ns - a.last_fix_ns) * 1e-9 > DIAGNOSIS_KEEP_S:
+            if rsu not in where or s_from_ns(now_ns - a.last_fix_ns) > DIAGNOSIS_KEEP_S:
                 continue
             msg = assessment_to_message(a, self.bus_id, where[rsu], now_ns)
             key = keys.key_of(msg)

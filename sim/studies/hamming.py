@@ -27,7 +27,7 @@ import numpy as np
 
 from sim.image_model import ImageModel
 from sim.patterns import family_size
-from sim.render import PlacedVehicle, render
+from sim.render import render
 from sim.sampling import sector_pose
 from sim.scene import bundled_vehicle, rsu_camera
 from toptag.dataset import Dataset
