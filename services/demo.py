@@ -10,13 +10,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
+from protocol.transport.runner import stop_signals
 from services.processes import TOPTAG, ProcessGroup, cpu_seconds, free_port
 from toptag.progress import Progress
 
@@ -92,12 +92,16 @@ def main(argv: list[str]) -> int:
         scenario = load_scenario(scenario_path)
     except InputError as e:
         return report("demo", e)
+    stop = threading.Event()
+    with stop_signals(lambda _name: stop.set()):
+        return _run(args, scenario_path, scenario, stop)
+
+
+def _run(args: argparse.Namespace, scenario_path: Path, scenario, stop: threading.Event) -> int:
     log_dir = Path(args.logs) if args.logs else Path(tempfile.mkdtemp(prefix="toptag-demo-"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     client = ["--zenoh-mode", "client", "--connect", endpoint]
     group = ProcessGroup(log_dir)
-    stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     print(f"toptag demo: router on {endpoint}; logs in {log_dir}", flush=True)
 
     router = group.start("router", TOPTAG + ["router", "--listen", endpoint])
@@ -181,8 +185,6 @@ def main(argv: list[str]) -> int:
         monitor.close()
         session.close()
         codes.update(group.stop([router]))
-        for s, h in previous.items():
-            signal.signal(s, h)
     summary["cpu"] = cpu.report()
     summary["exit_codes"] = codes
     summary["logs"] = str(log_dir)

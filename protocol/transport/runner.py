@@ -15,11 +15,12 @@ layer, so that the simulator (sim) and the services (services) share it."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -98,7 +99,6 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
     """Run one service process (see the module docstring). ``zenoh_config(args, inputs)`` builds the
     session's config when the default (the service's Zenoh options) is not enough (the router)."""
     setup_logging(args.log_level)
-    signals: list[str] = []  # the signals received (a plain list: the handler takes no lock)
     service: Service | None = None
 
     def stop_service(name: str) -> None:
@@ -106,16 +106,7 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
         if service is not None:
             service.stop()
 
-    def on_signal(signum, _frame):
-        # The handler interrupts the main thread anywhere, possibly inside the lock of the very Event
-        # that stop() sets: stop from another thread, which waits for that lock, never deadlocks.
-        signals.append(signal.Signals(signum).name)
-        threading.Thread(target=stop_service, args=(signals[-1],), name="stop", daemon=True).start()
-
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_signals(stop_service) as signals:
         try:
             args.settings = load_service_settings(args, settings)
             inputs = load()
@@ -146,6 +137,25 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
             session.close()
             log.info("%s stopped", describe(inputs))
         return EXIT_OK
+
+
+@contextlib.contextmanager
+def stop_signals(on_stop: Callable[[str], None]) -> Iterator[list[str]]:
+    """While the block runs, SIGINT and SIGTERM call on_stop(signal name) from a new thread (handlers
+    are only installed from the main thread); yields the names of the signals received so far."""
+    received: list[str] = []  # a plain list: the handler takes no lock
+
+    def on_signal(signum, _frame):
+        # The handler interrupts the main thread anywhere, possibly inside the lock of the very Event
+        # that on_stop sets: called from another thread, which waits for that lock, it never deadlocks.
+        received.append(signal.Signals(signum).name)
+        threading.Thread(target=on_stop, args=(received[-1],), name="stop", daemon=True).start()
+
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield received
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
