@@ -42,9 +42,10 @@ stream-tools:
 # Every test, in two pytest runs: the suite, then the compose test (tests/test_compose.py, system tier:
 # docker compose up, plain and secured, on a Docker engine that docker-engine installs where missing;
 # skipped with the reason where Docker cannot run). test-compose runs the compose test alone.
+# The suite lists its 15 slowest tests: what to look at when it nears its 10-minute budget.
 COMPOSE_TESTS := tests/test_compose.py
 test: setup docker-engine browser stream-tools
-	$(BIN)/python -m pytest -q --ignore=$(COMPOSE_TESTS)
+	$(BIN)/python -m pytest -q --durations=15 --ignore=$(COMPOSE_TESTS)
 	$(BIN)/python -m pytest -q $(COMPOSE_TESTS)
 
 test-compose: setup docker-engine
