@@ -294,15 +294,19 @@ class World:
         t = self.t0_ns + np.round(np.arange(k0, k1 + 1) * step).astype(np.int64)
         return t[(t > t_from_ns) & (t <= t_to_ns)]
 
+    def _index(self, rsu: int | str) -> int:
+        """An RSU given by id or by index, as its index."""
+        return self._cam_index[rsu] if isinstance(rsu, str) else rsu
+
     def frame_time(self, rsu: int | str, k: int) -> int:
         """Capture time of frame k of an RSU: RSUs are staggered by 1/n of their period."""
-        r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
+        r = self._index(rsu)
         step = NS_PER_S / self.fps[r]
         return self.t0_ns + int(round(r / len(self.cameras) * step)) + int(round(k * step))
 
     def frame_index_from(self, rsu: int | str, t_ns: int) -> int:
         """The first frame index whose capture time is >= t_ns."""
-        r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
+        r = self._index(rsu)
         k = max(0, int(math.floor((t_ns - self.frame_time(r, 0)) * self.fps[r] / NS_PER_S)))
         while self.frame_time(r, k) < t_ns:
             k += 1
@@ -439,13 +443,13 @@ class World:
     def render_jpeg(self, rsu: int | str, t_ns: int, camera: Camera | None = None) -> bytes:
         """The RSU's camera frame of the scene at t_ns (JPEG, the scenario's image model), taken by
         `camera` (default: the RSU's surveyed camera)."""
-        r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
+        r = self._index(rsu)
         return render_jpeg(camera or self.cameras[r], self.vehicles_at(t_ns), self.occluders_at(t_ns), self.model,
                            self._render_rng[r])
 
     def actual_camera(self, rsu: int | str, t_ns: int) -> Camera:
         """The RSU's camera as it really is at t_ns: turned by its drift (in DRIFT_STEP_DEG steps)."""
-        r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
+        r = self._index(rsu)
         drift = self.faults[r].drift
         if drift is None:
             return self.cameras[r]
@@ -455,7 +459,7 @@ class World:
 
     def capture(self, rsu: int | str, tick_ns: int) -> tuple[bytes, int]:
         """The frame the RSU gets at tick_ns and its capture stamp (see Faults in the module docstring)."""
-        r = self._cam_index[rsu] if isinstance(rsu, str) else rsu
+        r = self._index(rsu)
         f = self.faults[r]
         exposure = tick_ns - int(round(f.capture_latency_ms * NS_PER_MS))
         jpeg = self.render_jpeg(r, exposure, self.actual_camera(r, exposure))

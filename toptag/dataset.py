@@ -149,10 +149,6 @@ class Dataset:
             raise InputError(f"image {path}: missing or not an image")
         return to_gray8(img)
 
-    def board_corners(self, tag_id: int) -> np.ndarray | None:
-        """(4, 3) board coordinates of a tag's corners (detector order), None if not on the board."""
-        return board_corners(self.spec.target, tag_id)
-
 
 def to_gray8(img: np.ndarray) -> np.ndarray:
     """8-bit luma of an 8- or 16-bit grey or colour image."""

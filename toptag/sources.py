@@ -46,7 +46,6 @@ VIDEO_SUFFIXES = (".mp4", ".m4v", ".mkv", ".mov", ".avi", ".ts", ".m2ts", ".mts"
                   ".h265", ".265", ".hevc", ".mjpeg", ".mjpg", ".flv", ".mpg", ".mpeg")
 OPEN_TIMEOUT_S = 10.0
 READ_TIMEOUT_S = 5.0
-NS = 1_000_000_000
 LIVE_FFMPEG_OPTIONS = "analyzeduration;200000|probesize;65536|fflags;nobuffer"
 
 
