@@ -134,25 +134,19 @@ def estimate_sigma(ss: float, dof: float, floor: float = SIGMA_FLOOR_PX,
 
 
 def safe_inverse(A: np.ndarray) -> np.ndarray:
-    """Inverse of a normal matrix, or all-inf when the data do not determine the parameters."""
+    """Inverse of a normal matrix (or of each of a stack (..., n, n)), all-inf where the data do not
+    determine the parameters."""
+    A = np.asarray(A, dtype=float)
+    finite = np.isfinite(A).all(axis=(-2, -1))
+    every = bool(finite.all())
     try:
-        if not np.all(np.isfinite(A)):
-            raise np.linalg.LinAlgError
         # One SVD gives both the condition number and the inverse.
-        u, s, vt = np.linalg.svd(A)
-        if not s[-1] > 0 or s[0] / s[-1] > 1e15:
-            raise np.linalg.LinAlgError
-        return (vt.T / s) @ u.T
+        u, s, vt = np.linalg.svd(A if every else np.where(finite[..., None, None], A, 0.0))
     except np.linalg.LinAlgError:
         return np.full_like(A, np.inf)
-
-
-def procrustes_planar(world_xy: np.ndarray, roof_xy: np.ndarray) -> tuple[float, float, float]:
-    """(x, y, yaw) best mapping vehicle-frame points onto world points in the plane (2-D Kabsch)."""
-    mw, mr = world_xy.mean(axis=0), roof_xy.mean(axis=0)
-    a, b = roof_xy - mr, world_xy - mw
-    yaw = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b)))
-    c, s = math.cos(yaw), math.sin(yaw)
-    x = mw[0] - (c * mr[0] - s * mr[1])
-    y = mw[1] - (s * mr[0] + c * mr[1])
-    return float(x), float(y), float(yaw)
+    good = finite & (s[..., -1] > 0) & (s[..., 0] <= 1e15 * s[..., -1])
+    if good.all():
+        return (np.swapaxes(vt, -1, -2) / s[..., None, :]) @ np.swapaxes(u, -1, -2)
+    s = np.where(s > 0, s, 1.0)
+    inv = (np.swapaxes(vt, -1, -2) / s[..., None, :]) @ np.swapaxes(u, -1, -2)
+    return np.where(good[..., None, None], inv, np.inf)

@@ -5,11 +5,9 @@ import math
 
 import numpy as np
 
-from toptag.geometry import rot_z
 from toptag.solvers.common import (
     Fit,
     estimate_sigma,
-    procrustes_planar,
     rms,
     safe_inverse,
 )
@@ -29,29 +27,37 @@ from toptag.solvers.model import (
 PLANAR = [0, 1, 2]  # x, y, yaw within theta
 
 
-def backprojected(c: Corners, h: float) -> np.ndarray:
-    """Observed corners back-projected onto the world plane z = h (N,3), NaN where the ray misses."""
-    out = np.empty((c.n, 3))
-    for cam_id in c.camera_ids:
-        rows = c.camera_rows(cam_id)
-        cam = c.units[int(c.unit_of[rows][0])].camera
-        out[rows] = cam.backproject_to_plane(c.pixels[rows], h, distorted=False)
-    return out
-
-
 def initial_pose(c: Corners, h: float, yaw0: float | None) -> tuple[float, float, float] | None:
     """SPEC's start: x, y from the mean back-projected corner (less the rotated mean roof corner, so
     that the vehicle origin and not the tag centroid is estimated); yaw from Bas. when given, else
     from a planar fit of the back-projected corners."""
-    W = backprojected(c, h)
+    start = initial_poses(c, h, np.ones((1, c.n), dtype=bool), yaw0)[0]
+    return None if np.isnan(start[0]) else (float(start[0]), float(start[1]), float(start[2]))
+
+
+def initial_poses(c: Corners, h: float, masks: np.ndarray, yaw0: float | None = None) -> np.ndarray:
+    """`initial_pose` of each subset of c's corners (masks (B, N) bool) at once: (B, 3), NaN where fewer
+    than two of its corners back-project onto the plane z = h."""
+    W = c.backprojected(h)
     ok = np.all(np.isfinite(W), axis=1)
-    if ok.sum() < 2:
-        return None
-    P = c.points[ok]
+    m = np.asarray(masks, dtype=bool) & ok
+    count = m.sum(axis=1)
+    w = m / np.maximum(count, 1)[:, None]
+    W = np.where(ok[:, None], W, 0.0)
+    P = c.points
+    mw, mp = w @ W, w @ P  # (B, 3) mean back-projected and roof corner
     if yaw0 is None or not math.isfinite(yaw0):
-        yaw0 = procrustes_planar(W[ok, :2], P[:, :2])[2]
-    m = W[ok].mean(axis=0) - rot_z(yaw0) @ P.mean(axis=0)
-    return float(m[0]), float(m[1]), float(yaw0)
+        # The planar rotation best mapping the roof corners onto the back-projected ones (2-D Kabsch).
+        a = P[None, :, :2] - mp[:, None, :2]
+        b = W[None, :, :2] - mw[:, None, :2]
+        yaw = np.arctan2(np.sum(w * (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]), axis=1),
+                         np.sum(w * (a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]), axis=1))
+    else:
+        yaw = np.full(len(m), float(yaw0))
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    out = np.column_stack([mw[:, 0] - (cy * mp[:, 0] - sy * mp[:, 1]), mw[:, 1] - (sy * mp[:, 0] + cy * mp[:, 1]), yaw])
+    out[count < 2] = np.nan
+    return out
 
 
 def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: float | None = None,

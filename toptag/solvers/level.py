@@ -52,8 +52,8 @@ from scipy import stats
 from toptag.geometry import rodrigues
 from toptag.solvers.common import SIGMA_FLOOR_PX as COMMON_FLOOR_PX
 from toptag.solvers.common import SIGMA_PRIOR_PX, Fit, estimate_sigma, rms, safe_inverse
-from toptag.solvers.hopt import initial_pose
-from toptag.solvers.lm import levenberg_marquardt
+from toptag.solvers.hopt import initial_pose, initial_poses
+from toptag.solvers.lm import LmResult, levenberg_marquardt_batch
 from toptag.solvers.model import (
     IX,
     IY,
@@ -66,6 +66,7 @@ from toptag.solvers.model import (
     camera_index,
     evaluate,
     evaluate_level,
+    evaluate_level_batch,
     planar_theta,
 )
 
@@ -181,6 +182,7 @@ class LevelProblem:
             prior[self.n_pose:] = np.tile(1.0 / calib.sigmas, len(self.cams))
         self.prior = prior
         self.prior_rows = np.flatnonzero(prior > 0)
+        self._memo = None
         if self.n_c:
             cam = camera_index(c)
             self._cam_rows = [cam == k for k in range(len(self.cams))]
@@ -224,63 +226,88 @@ class LevelProblem:
             J = np.hstack([J, calib_columns(cc, theta, self.calib)])
         return ev.r_px, J, ev.in_front
 
-    def residuals(self, sigma: float):
-        A = self.row_w[:, None] * self.T / sigma
-        n_prior = len(self.prior_rows)
-        J_prior = np.zeros((n_prior, self.n_p))
-        J_prior[np.arange(n_prior), self.prior_rows] = self.prior[self.prior_rows]
-        offset = np.zeros(self.n_p)
-        if self.zfree:
-            offset[3] = self.h
-
-        def fun(p):
-            r_px, J_px, ok = self.pixels(p)
-            r = np.concatenate([A @ r_px, (p - offset)[self.prior_rows] * self.prior[self.prior_rows]])
-            if not ok:
-                r = np.full_like(r, np.inf)
-            return r, np.vstack([A @ J_px, J_prior])
-
-        return fun
+    @functools.cached_property
+    def _bias_patterns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Raw pixel patterns of the detector's shared errors, one column each: every tag's outward edge
+        shift (2N, tags); which tags each camera holds (tags, cams); each camera's x then y image
+        shift (2N, 2·cams)."""
+        c = self.c
+        per_row = np.repeat(c.unit_of, 2)
+        units = (per_row[:, None] == np.arange(len(c.units))[None, :]) * _outward(c)[:, None]
+        cam_ids = sorted({u.camera.id for u in c.units})
+        cam_of_unit = np.array([cam_ids.index(u.camera.id) for u in c.units])
+        in_cam = (cam_of_unit[:, None] == np.arange(len(cam_ids))[None, :]).astype(float)  # (tags, cams)
+        rows_cam = in_cam[per_row]  # (2N, cams)
+        axis = np.tile([1.0, 0.0], c.n)[:, None]
+        return units, in_cam, np.hstack([rows_cam * axis, rows_cam * (1.0 - axis)])
 
     def _edge_bias_cov(self, H_inv, Jw, d2, sigma) -> np.ndarray:
         """Covariance of p from the detector's shared corner errors (DetectorBias): the weighted fit's
         response to each tag's outward edge shift, to every camera's common one and to its image shift."""
-        c, b = self.c, self.bias
+        b = self.bias
         if b == NO_BIAS:
             return 0.0
         gain = H_inv @ (Jw.T * d2) @ self.T / sigma  # p's response to a raw pixel residual change
-        # Pixel patterns, one column each: every tag's outward edge shift; each camera's x and y shift.
-        per_row = np.repeat(c.unit_of, 2)
-        units = (per_row[:, None] == np.arange(len(c.units))[None, :]) * _outward(c)[:, None]
+        units, in_cam, shifts = self._bias_patterns
         G_tag = gain @ units  # (n_p, tags)
-        cam_ids = sorted({u.camera.id for u in c.units})
-        cam_of_unit = np.array([cam_ids.index(u.camera.id) for u in c.units])
-        in_cam = (cam_of_unit[:, None] == np.arange(len(cam_ids))[None, :]).astype(float)  # (tags, cams)
         G_cam = G_tag @ in_cam  # each camera's common outward shift
-        rows_cam = in_cam[per_row]  # (2N, cams)
-        axis = np.tile([1.0, 0.0], c.n)[:, None]
-        G_img = np.hstack([gain @ (rows_cam * axis), gain @ (rows_cam * (1.0 - axis))])
+        G_img = gain @ shifts
         return (b.edge_tag ** 2 * G_tag @ G_tag.T + b.edge_common ** 2 * G_cam @ G_cam.T
                 + b.image_shift ** 2 * G_img @ G_img.T)
 
-    def minimise(self, p0, sigma: float):
-        return levenberg_marquardt(self.residuals(sigma), p0)
+    def minimise(self, p0, sigma: float) -> LmResult:
+        """The least-squares p from p0, the pixels weighted with sigma."""
+        A = self.row_w[:, None] * self.T / sigma
+        prior2 = self.prior ** 2
+        offset = np.zeros(self.n_p)
+        if self.zfree:
+            offset[3] = self.h
 
-    def statistics(self, p, sigma: float, sigma_noise: float | None = None) -> "LevelStats":
-        """At p, weighted with sigma; the covariance under whitened pixel noise sigma_noise (default sigma)."""
+        def normal(ps):
+            p = ps[0]
+            r_px, J_px, ok = self.pixels(p)
+            r, J = A @ r_px, A @ J_px
+            dp = prior2 * (p - offset)
+            cost = float(r @ r + dp @ (p - offset)) if ok else math.inf
+            return np.array([cost]), (J.T @ J + np.diag(prior2))[None], (J.T @ r + dp)[None]
+
+        res = levenberg_marquardt_batch(normal, np.asarray(p0, dtype=float)[None])
+        return LmResult(res.theta[0], bool(res.converged[0]))
+
+    def _normal(self, p, sigma: float):
+        """At p weighted with sigma: (r_px, J_px, in front, Jw, d2, JtD2J, H_inv, dof, weighted whitened
+        residuals), kept for the last (p, sigma) asked: the fit asks its residual's statistics, then the
+        covariance at the same point."""
+        key = (np.asarray(p, dtype=float).tobytes(), float(sigma))
+        if self._memo is not None and self._memo[0] == key:
+            return self._memo[1]
         r_px, J_px, ok = self.pixels(p)
         Jw = self.T @ J_px / sigma  # whitened, unweighted
         d2 = self.row_w ** 2
-        P2 = np.diag(self.prior ** 2)
         JtD2J = Jw.T @ (d2[:, None] * Jw)
-        H = JtD2J + P2
+        H = JtD2J.copy()
+        H[self.prior_rows, self.prior_rows] += self.prior[self.prior_rows] ** 2
         H_inv = safe_inverse(H)
+        finite = bool(np.all(np.isfinite(H_inv)))
+        dof = float(np.sum(d2) - np.trace(H_inv @ JtD2J)) if finite else 0.0
+        rw = self.row_w * (self.T @ r_px)
+        out = (r_px, J_px, ok, Jw, d2, H_inv, dof, rw)
+        self._memo = (key, out)
+        return out
+
+    def residual_statistics(self, p, sigma: float) -> tuple[np.ndarray, float]:
+        """(whitened weighted residuals (px of the whitened sigma), their degrees of freedom) at p."""
+        _, _, _, _, _, _, dof, rw = self._normal(p, sigma)
+        return rw, dof
+
+    def statistics(self, p, sigma: float, sigma_noise: float | None = None) -> "LevelStats":
+        """At p, weighted with sigma; the covariance under whitened pixel noise sigma_noise (default sigma)."""
+        r_px, J_px, ok, Jw, d2, H_inv, dof, rw = self._normal(p, sigma)
+        P2 = np.diag(self.prior ** 2)
         noise2 = 1.0 if sigma_noise is None else (sigma_noise / sigma) ** 2
         B = noise2 * (Jw.T @ ((d2 ** 2)[:, None] * Jw)) + P2
         cov = H_inv @ B @ H_inv + self._edge_bias_cov(H_inv, Jw, d2, sigma)
         finite = bool(np.all(np.isfinite(H_inv)))
-        dof = float(np.sum(d2) - np.trace(H_inv @ JtD2J)) if finite else 0.0
-        rw = self.row_w * (self.T @ r_px)
         # Residual a one-sigma prior error (roof height, calibration) leaves: p moves by -H⁻¹P²·delta.
         n = max(self.c.n, 1)
         M = J_px @ H_inv if finite else np.full_like(J_px, np.inf)
@@ -292,13 +319,10 @@ class LevelProblem:
 
 def _outward(c: Corners) -> np.ndarray:
     """(2N,) per corner: the pixel shift of a one-pixel outward move of its tag's four edges (along the
-    quad's diagonal, times sqrt 2)."""
-    d = np.zeros_like(c.pixels)
-    for k in range(len(c.units)):
-        rows = c.unit_of == k
-        v = c.pixels[rows] - c.pixels[rows].mean(axis=0)
-        d[rows] = math.sqrt(2.0) * v / np.linalg.norm(v, axis=1, keepdims=True)
-    return d.reshape(-1)
+    quad's diagonal, times sqrt 2). build_corners keeps each tag's four corners in consecutive rows."""
+    q = c.pixels.reshape(-1, 4, 2)
+    v = q - q.mean(axis=1, keepdims=True)
+    return (math.sqrt(2.0) * v / np.linalg.norm(v, axis=2, keepdims=True)).reshape(-1)
 
 
 @dataclass
@@ -320,26 +344,38 @@ class SubsetFit:
     """A level fit of some of c's units (no unit weights; calibration unknowns only in SubsetFits.own)."""
 
     units: tuple[int, ...]
-    corners: Corners
+    source: Corners  # all the units' corners, of which this fit used `units`
     p: np.ndarray
     theta: np.ndarray
-    r_white: np.ndarray  # whitened residuals (px)
+    r_white: np.ndarray  # whitened residuals (px) of the units fitted
     J_white: np.ndarray  # whitened Jacobian over (x, y, yaw[, z]) (px)
     dof: float
     converged: bool
+    # Every corner of `source` at this fit's pose (the outlier test predicts the units left out with
+    # them): whitened residuals (2N,), Jacobian (2N, 4) over (x, y, yaw, z), and in front (N,).
+    all_r_white: np.ndarray | None = None
+    all_J_white: np.ndarray | None = None
+    all_in_front: np.ndarray | None = None
+
+    @functools.cached_property
+    def corners(self) -> Corners:
+        return self.source.subset(self.units)
 
 
 class SubsetFits:
     """Level fits of subsets of c's units (by index in c), each computed once: the outlier test's
-    leave-one-out fits and the misfit weights' one-tag fits are often the same ones. sigma_w: the
-    whitened sigma that weighs the pixels against the roof-height prior."""
+    leave-one-out fits and the misfit weights' one-tag fits are often the same ones, and those wanted
+    together are solved together (`prepare`: one batch of small problems, each step of all of them a few
+    numpy calls). sigma_w: the whitened sigma that weighs the pixels against the roof-height prior."""
 
     def __init__(self, c: Corners, h: float, sigma_h: float, turn_ratio: float | None, sigma_w: float):
         self.c, self.h, self.sigma_h, self.turn_ratio, self.sigma_w = c, h, sigma_h, turn_ratio, sigma_w
         self.blocks = edge_blocks(c.pixels, turn_ratio)  # per unit: build_corners keeps 4 rows per unit
-        self._fits: dict[tuple[int, ...], SubsetFit | None] = {}
-        self._units: dict[int, Corners] = {}
+        self.T = block_diagonal(self.blocks)
+        self._fits: dict[tuple, SubsetFit | None] = {}
         self._whiteners: dict[tuple[int, ...], np.ndarray] = {}
+        self._rows: dict[tuple[int, ...], np.ndarray] = {}
+        self._whiteners[tuple(range(len(c.units)))] = self.T
 
     def whitener(self, units) -> np.ndarray:
         key = tuple(int(u) for u in units)
@@ -347,16 +383,25 @@ class SubsetFits:
             self._whiteners[key] = block_diagonal(self.blocks[list(key)])
         return self._whiteners[key]
 
-    def unit(self, k: int) -> Corners:
-        if k not in self._units:
-            self._units[k] = self.c.subset([k])
-        return self._units[k]
+    def rows(self, units) -> np.ndarray:
+        """Indices of the units' residual rows (x and y of each corner) within c's 2N, in c's order."""
+        units = tuple(int(u) for u in units)
+        if units not in self._rows:
+            self._rows[units] = np.flatnonzero(np.repeat(np.isin(self.c.unit_of, units), 2))
+        return self._rows[units]
 
     def get(self, units) -> SubsetFit | None:
         key = tuple(sorted(int(u) for u in units))
         if key not in self._fits:
-            self._fits[key] = self._fit(key)
+            self.prepare([key])
         return self._fits[key]
+
+    def prepare(self, subsets) -> None:
+        """Fit every listed subset of units not fitted yet, all at once."""
+        keys = list(dict.fromkeys(tuple(sorted(int(u) for u in s)) for s in subsets))
+        keys = [k for k in keys if k not in self._fits]
+        if keys:
+            self._fits.update(zip(keys, self._fit_batch(keys)))
 
     def own(self, k: int, calib: Calibration = KNOWN) -> SubsetFit | None:
         """Unit k fitted alone; with its camera's rotation correction as an unknown with its prior when
@@ -366,15 +411,70 @@ class SubsetFits:
             return self.get((k,))
         key = ("own", int(k))
         if key not in self._fits:
-            self._fits[key] = self._fit((int(k),), Calibration(calib.rot_sigma, 0.0))
+            self._fits[key] = self._fit_calibrated(int(k), Calibration(calib.rot_sigma, 0.0))
         return self._fits[key]
 
-    def _fit(self, key, calib: Calibration = KNOWN) -> SubsetFit | None:
-        sub = self.unit(key[0]) if len(key) == 1 else self.c.subset(list(key))
+    def _fit_batch(self, keys: list[tuple[int, ...]]) -> list[SubsetFit | None]:
+        c, h, s_w = self.c, self.h, self.sigma_w
+        in_key = np.zeros((len(keys), len(c.units)), dtype=bool)
+        for b, key in enumerate(keys):
+            in_key[b, list(key)] = True
+        corner_mask = in_key[:, c.unit_of]  # (B, N)
+        row_w = np.repeat(corner_mask, 2, axis=1) / s_w  # (B, 2N): the subset's rows, over sigma
+        starts = initial_poses(c, h, corner_mask)
+        ok_start = np.isfinite(starts[:, 0])
+        zfree = self.sigma_h > 0
+        n_p = 4 if zfree else 3
+        p0 = np.column_stack([starts, np.full(len(keys), h)])[:, :n_p]
+        p0[~ok_start] = 0.0
+        T = self.T
+
+        def fun(p):
+            r_px, J_px, front = evaluate_level_batch(c, _level_poses(p, h))
+            r = (r_px @ T.T) * row_w
+            J = (T @ J_px[..., :n_p]) * row_w[..., None]
+            Jt = J.transpose(0, 2, 1)
+            cost, A, g = (r * r).sum(axis=1), Jt @ J, (Jt @ r[..., None])[..., 0]
+            if zfree:  # the roof-height prior's residual (z - h) / sigma_h
+                dz = (p[:, 3] - h) / self.sigma_h ** 2
+                cost += dz * (p[:, 3] - h)
+                A[:, 3, 3] += 1.0 / self.sigma_h ** 2
+                g[:, 3] += dz
+            cost[(~front & corner_mask).any(axis=1)] = np.inf
+            return cost, A, g
+
+        res = levenberg_marquardt_batch(fun, p0)
+        r_px, J_px, front = evaluate_level_batch(c, _level_poses(res.theta, h))
+        r_all = r_px @ T.T
+        J_all = T @ J_px
+        Jw = J_all[..., :n_p] * np.repeat(corner_mask, 2, axis=1)[..., None]
+        JtJ = np.swapaxes(Jw, 1, 2) @ Jw
+        H = JtJ / s_w ** 2
+        if zfree:
+            H[:, 3, 3] += 1.0 / self.sigma_h ** 2
+        H_inv = safe_inverse(H)
+        trace = np.einsum("bij,bji->b", H_inv, JtJ)
+        out = []
+        for b, key in enumerate(keys):
+            if not ok_start[b] or not np.all(np.isfinite(res.theta[b])):
+                out.append(None)
+                continue
+            rows = self.rows(key)
+            dof = len(rows) - float(trace[b]) / s_w ** 2 if np.all(np.isfinite(H_inv[b])) else 0.0
+            p = res.theta[b]
+            theta = planar_theta(p[0], p[1], p[2], p[3] if zfree else h)
+            out.append(SubsetFit(key, c, p, theta, r_all[b, rows], J_all[b][rows][:, :n_p], dof,
+                                 bool(res.converged[b] and np.all(front[b][corner_mask[b]])),
+                                 r_all[b], J_all[b], front[b]))
+        return out
+
+    def _fit_calibrated(self, k: int, calib: Calibration) -> SubsetFit | None:
+        """Unit k alone with its camera's uncertain extrinsic corrections as unknowns."""
+        sub = self.c.subset([k])
         start = initial_pose(sub, self.h, None)
         if start is None:
             return None
-        T = self.whitener(key)
+        T = self.whitener((k,))
         prob = LevelProblem(sub, self.h, self.sigma_h, calib, self.turn_ratio, whitener=T)
         res = prob.minimise(prob.start(start), self.sigma_w)
         if not np.all(np.isfinite(res.theta)):
@@ -385,7 +485,12 @@ class SubsetFits:
         H_inv = safe_inverse(H)
         dof = (2 * sub.n - float(np.trace(H_inv @ (Jw.T @ Jw))) / self.sigma_w ** 2
                if np.all(np.isfinite(H_inv)) else 0.0)
-        return SubsetFit(key, sub, res.theta, prob.theta(res.theta), T @ r_px, Jw, dof, res.converged and ok)
+        return SubsetFit((k,), self.c, res.theta, prob.theta(res.theta), T @ r_px, Jw, dof, res.converged and ok)
+
+
+def _level_poses(p: np.ndarray, h: float) -> np.ndarray:
+    """(B, 4) level poses (x, y, yaw, z) from (B, 3 or 4) parameters (z = h when not among them)."""
+    return p if p.shape[1] == 4 else np.column_stack([p, np.full(len(p), h)])
 
 
 def misfit_weights(fits: SubsetFits, units: list[int], floor_w: float,
@@ -395,6 +500,8 @@ def misfit_weights(fits: SubsetFits, units: list[int], floor_w: float,
     will weigh them (None if there is none); and r_k / r_min.
     A unit that cannot be fitted alone keeps weight 1. Two good tags' own misfits (4–5 degrees of
     freedom each) differ by 3× one time in ten; a garbled tag's is (measured) 15–2000× the best."""
+    if not calib.rot_sigma > 0:
+        fits.prepare([(k,) for k in units])
     own, ss, dof = [], [], []
     for k in units:
         f = fits.own(k, calib)
@@ -418,7 +525,8 @@ def misfit_weights(fits: SubsetFits, units: list[int], floor_w: float,
 
 def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | None = None,
               calib: Calibration = KNOWN, turn_ratio: float | None = TURN_RATIO, unit_weights=None,
-              sigma0_w: float | None = None, calib_alpha: float = 1e-3, bias: DetectorBias = NO_BIAS) -> Fit:
+              sigma0_w: float | None = None, calib_alpha: float = 1e-3, bias: DetectorBias = NO_BIAS,
+              whitener: np.ndarray | None = None) -> Fit:
     """The weighted level-roof fit from start = (x, y, yaw). sigma_px: corner noise per coordinate if known.
     Else sigma0_w, when given, is the whitened noise the tags' own fits show (misfit_weights): the fit
     weighs with it (or with the smaller noise its own residual shows), and the covariance takes the noise
@@ -428,10 +536,11 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
     height_rms_px / calib_rms_px are the residuals a one-sigma roof-height / calibration error leaves.
     A camera whose estimated extrinsic correction is beyond its calibration prior (chi-square above its
     1 − calib_alpha quantile; the estimate shrinks toward the prior, so an honest error stays below it
-    at least that often) makes the fit unusable: the cameras disagree by more than their calibration."""
+    at least that often) makes the fit unusable: the cameras disagree by more than their calibration.
+    whitener: edge_whitener(c.pixels, turn_ratio) when the caller has it already."""
     scale = noise_scale(turn_ratio)
     floor_w, prior_w = LEVEL_SIGMA_FLOOR_PX / scale, DETECTOR_SIGMA_PX / scale
-    prob = LevelProblem(c, h, sigma_h, calib, turn_ratio, unit_weights, bias=bias)
+    prob = LevelProblem(c, h, sigma_h, calib, turn_ratio, unit_weights, whitener, bias=bias)
     known = sigma_px is not None
     p = prob.start(start)
     if known:
@@ -450,8 +559,8 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
             if not np.all(np.isfinite(p)):
                 sigma_cov = sigma
                 break
-            st = prob.statistics(p, sigma)
-            sigma_cov = estimate_sigma(float(st.r_white @ st.r_white), st.dof, floor=floor_w, prior=prior_w)
+            rw, dof = prob.residual_statistics(p, sigma)
+            sigma_cov = estimate_sigma(float(rw @ rw), dof, floor=floor_w, prior=prior_w)
             if sigma_cov >= 0.9 * sigma:
                 break
             sigma = sigma_cov
@@ -462,8 +571,8 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
             p = res.theta
             if not np.all(np.isfinite(p)):
                 break
-            st = prob.statistics(p, sigma)
-            new = estimate_sigma(float(st.r_white @ st.r_white), st.dof, floor=floor_w, prior=prior_w)
+            rw, dof = prob.residual_statistics(p, sigma)
+            new = estimate_sigma(float(rw @ rw), dof, floor=floor_w, prior=prior_w)
             done = abs(new / sigma - 1.0) <= 0.1
             sigma = new
             if done:
@@ -520,5 +629,8 @@ def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float
     start = initial_pose(kept, h, None)
     if start is None:
         return None, dropped
+    # The screening's whitener of these units, when it weighs as this fit does (keep is in c's order).
+    whitener = fits.whitener(keep) if fits is not None and fits.c is c and fits.turn_ratio == turn_ratio else None
     return fit_level(kept, h, start, sigma_h=sigma_h, sigma_px=sigma_px, calib=calib, turn_ratio=turn_ratio,
-                     unit_weights=weights, sigma0_w=sigma0_w, calib_alpha=calib_alpha, bias=bias), dropped
+                     unit_weights=weights, sigma0_w=sigma0_w, calib_alpha=calib_alpha, bias=bias,
+                     whitener=whitener), dropped

@@ -58,6 +58,51 @@ class Corners:
         """(N,3) vehicle-top coordinates of each observed corner (computed once; never modified)."""
         return self.roof_points[self.corner_of]
 
+    @functools.cached_property
+    def level_projection(self) -> np.ndarray:
+        """(3N, 6): each corner's homogeneous pixel (K·X_cam, rows of 3) as a linear map of
+        (x, y, z, cos yaw, sin yaw, 1) of a level roof (pitch = roll = 0): the roof corner (px, py, pz) is at
+        world (x + px·cos − py·sin, y + px·sin + py·cos, z + pz)."""
+        Kh = np.zeros((self.n, 3, 3))
+        Kh[:, :2, :2] = self.cam_K
+        Kh[:, :2, 2] = self.cam_c
+        Kh[:, 2, 2] = 1.0
+        G = Kh @ self.cam_R  # world point to homogeneous pixel
+        g0 = np.einsum("nij,nj->ni", Kh, self.cam_t)
+        p = self.points
+        M = np.empty((self.n, 3, 6))
+        M[:, :, 0:3] = G
+        M[:, :, 3] = G[:, :, 0] * p[:, 0:1] + G[:, :, 1] * p[:, 1:2]
+        M[:, :, 4] = G[:, :, 1] * p[:, 0:1] - G[:, :, 0] * p[:, 1:2]
+        M[:, :, 5] = g0 + G[:, :, 2] * p[:, 2:3]
+        return M.reshape(-1, 6)
+
+    @functools.cached_property
+    def level_jacobian(self) -> np.ndarray:
+        """(N, 3, 4): d(homogeneous pixel)/d(x, y, yaw, z) of a level roof, yaw's column left 0 (it depends
+        on the pose)."""
+        M = self.level_projection.reshape(self.n, 3, 6)
+        out = np.zeros((self.n, 3, 4))
+        out[:, :, 0], out[:, :, 1], out[:, :, 3] = M[:, :, 0], M[:, :, 1], M[:, :, 2]
+        return out
+
+    @functools.cached_property
+    def rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(camera centre (N,3), world direction (N,3), not normalised) of each corner's ray."""
+        xn = np.linalg.solve(self.cam_K, (self.pixels - self.cam_c)[..., None])[..., 0]
+        d_cam = np.concatenate([xn, np.ones((self.n, 1))], axis=1)
+        d = np.einsum("nji,nj->ni", self.cam_R, d_cam)  # R^T d_cam
+        centre = -np.einsum("nji,nj->ni", self.cam_R, self.cam_t)
+        return centre, d
+
+    def backprojected(self, h: float) -> np.ndarray:
+        """Observed corners back-projected onto the world plane z = h (N,3), NaN where the ray misses."""
+        centre, d = self.rays
+        dz = d[:, 2]
+        s = (h - centre[:, 2]) / np.where(dz != 0.0, dz, np.nan)
+        s = np.where(s > 0, s, np.nan)
+        return centre + s[:, None] * d
+
     @property
     def tag_ids(self) -> list[int]:
         return sorted({u.tag_id for u in self.units})
@@ -208,27 +253,33 @@ def evaluate(c: Corners, theta) -> Evaluation:
 def evaluate_level(c: Corners, x: float, y: float, yaw: float, z: float) -> tuple[np.ndarray, np.ndarray, bool]:
     """`evaluate` for a level roof (pitch = roll = 0), in the few operations the solvers' inner loops
     need: (pixel residuals (2N,), their Jacobian (2N, 4) over (x, y, yaw, z), every corner in front)."""
-    P = c.points
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    rx = cy * P[:, 0] - sy * P[:, 1]  # roof corners rotated by yaw, about the vehicle-top origin
-    ry = sy * P[:, 0] + cy * P[:, 1]
-    W = np.column_stack([rx + x, ry + y, P[:, 2] + z])
-    R = c.cam_R
-    Xc = np.einsum("nij,nj->ni", R, W) + c.cam_t
-    Z = Xc[:, 2]
-    # d(X_cam)/d(x, y, yaw, z): the camera rotation's columns, and d(world)/d(yaw) = (-ry, rx, 0).
-    A = np.empty((len(Z), 3, 4))
-    A[:, :, 0] = R[:, :, 0]
-    A[:, :, 1] = R[:, :, 1]
-    A[:, :, 2] = R[:, :, 1] * rx[:, None] - R[:, :, 0] * ry[:, None]
-    A[:, :, 3] = R[:, :, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        iz = 1.0 / Z
-        xn = Xc[:, :2] * iz[:, None]
-        uv = np.einsum("nij,nj->ni", c.cam_K, xn) + c.cam_c
-        dxn = (A[:, :2, :] - xn[:, :, None] * A[:, 2:3, :]) * iz[:, None, None]
-        J = np.einsum("nij,njk->nik", c.cam_K, dxn)
-    return (uv - c.pixels).ravel(), J.reshape(-1, 4), bool(np.all(Z > MIN_DEPTH))
+    r, J, front = evaluate_level_batch(c, np.array([[x, y, yaw, z]]))
+    return r[0], J[0], bool(front[0].all())
+
+
+def evaluate_level_batch(c: Corners, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`evaluate_level` at B level poses P (B, 4) = (x, y, yaw, z) at once: pixel residuals (B, 2N), their
+    Jacobians (B, 2N, 4) and whether each corner is in front of its camera (B, N).
+
+    The homogeneous pixel of a level roof's corner is linear in (x, y, z, cos yaw, sin yaw, 1)
+    (Corners.level_projection), so one matrix product gives every corner's pixel and its yaw derivative."""
+    P = np.asarray(P, dtype=float)
+    n_b = len(P)
+    cy, sy = np.cos(P[:, 2]), np.sin(P[:, 2])
+    V = np.zeros((n_b, 6, 2))
+    V[:, 0, 0], V[:, 1, 0], V[:, 2, 0] = P[:, 0], P[:, 1], P[:, 3]
+    V[:, 3, 0], V[:, 4, 0], V[:, 5, 0] = cy, sy, 1.0
+    V[:, 3, 1], V[:, 4, 1] = -sy, cy
+    Q = (c.level_projection @ V).reshape(n_b, c.n, 3, 2)  # homogeneous pixels and their yaw derivative
+    dq = np.repeat(c.level_jacobian[None], n_b, axis=0)  # (B, N, 3, 4): d(q)/d(x, y, yaw, z)
+    dq[..., 2] = Q[..., 1]
+    Z = Q[:, :, 2, 0]
+    # A corner at depth 0 divides by zero: its residual is then not finite, and the caller (solve, under
+    # np.errstate) refuses the pose through the in-front mask. No errstate here: this is the inner loop.
+    iz = (1.0 / Z)[..., None]
+    uv = Q[:, :, :2, 0] * iz
+    J = (dq[:, :, :2, :] - uv[..., None] * dq[:, :, 2:3, :]) * iz[..., None]
+    return (uv - c.pixels).reshape(n_b, -1), J.reshape(n_b, -1, 4), Z > MIN_DEPTH
 
 
 # ---- camera calibration ------------------------------------------------------------------------

@@ -93,7 +93,8 @@ def screen_outliers(c: Corners, h: float, sigma_px: float | None, sigma_h: float
     keep = list(range(len(c.units)))
     dropped: list[dict] = []
     while len(keep) >= 2:
-        scores = [_loo_statistic(c, fits, keep, k, sigma_px, sigma_h, calib, turn_ratio, alpha) for k in keep]
+        fits.prepare([[u for u in keep if u != k] for k in keep])  # every leave-one-out fit in one batch
+        scores = _loo_statistics(c, fits, keep, sigma_px, sigma_h, calib, turn_ratio, alpha)
         ratios = [-math.inf if math.isnan(d) else d / thr for d, thr in scores]
         worst = int(np.argmax(ratios))
         if not ratios[worst] > 1.0:
@@ -127,48 +128,58 @@ def _cam_blocks(corners: Corners, theta, calib: Calibration, cam_ids: list[str])
     return out
 
 
-def _loo_statistic(c: Corners, fits: SubsetFits, keep: list[int], k: int, sigma_px: float | None,
-                   sigma_h: float, calib: Calibration, turn_ratio: float | None,
-                   alpha: float) -> tuple[float, float]:
-    rest = fits.get([u for u in keep if u != k])
-    if rest is None or not rest.converged:
-        return math.nan, 1.0
-    ck = fits.unit(k)
-    ev_k = evaluate(ck, rest.theta)
-    if not ev_k.in_front:
-        return math.inf, 1.0
-    Tk = fits.whitener([k])
-    cols = [0, 1, 2, 3][:rest.J_white.shape[1]]
-    e = Tk @ ev_k.r_px
-    Jk = Tk @ ev_k.J_px[:, cols]
-    m = len(e)
+def _loo_statistics(c: Corners, fits: SubsetFits, keep: list[int], sigma_px: float | None, sigma_h: float,
+                    calib: Calibration, turn_ratio: float | None, alpha: float) -> list[tuple[float, float]]:
+    """(d_k, its threshold) for every unit k of keep, the matrix work of all of them at once."""
+    out: list[tuple[float, float]] = [(math.nan, 1.0)] * len(keep)
+    items = []  # (index in keep, k, the rest's fit, k's rows)
+    for i, k in enumerate(keep):
+        rest = fits.get([u for u in keep if u != k])
+        if rest is None or not rest.converged:
+            continue
+        if not rest.all_in_front[c.unit_of == k].all():
+            out[i] = (math.inf, 1.0)
+            continue
+        items.append((i, k, rest, fits.rows([k])))
+    if not items:
+        return out
+    # k's corners as the rest's fit predicts them, whitened as k's own (the whitener is per unit).
+    e = np.stack([rest.all_r_white[rows] for _, _, rest, rows in items])
+    n_p = items[0][2].J_white.shape[1]
+    Jk = np.stack([rest.all_J_white[rows][:, :n_p] for _, _, rest, rows in items])
+    G = np.stack([rest.J_white for _, _, rest, _ in items])
+    m = e.shape[1]
     scale = noise_scale(turn_ratio)
     if sigma_px is not None:
-        s2, thr = (sigma_px / scale) ** 2, _threshold(alpha, m, None)
+        s2 = np.full(len(items), (sigma_px / scale) ** 2)
+        thr = [_threshold(alpha, m, None)] * len(items)
     else:
-        ss = float(rest.r_white @ rest.r_white)
-        dof = max(rest.dof, 0.0)
+        ss = np.array([float(rest.r_white @ rest.r_white) for _, _, rest, _ in items])
+        dof = np.array([max(rest.dof, 0.0) for _, _, rest, _ in items])
         s2 = (ss + PRIOR_DOF * (SCREEN_PRIOR_PX / scale) ** 2) / (dof + PRIOR_DOF)
-        thr = _threshold(alpha, m, int(math.floor((dof + PRIOR_DOF) * 10)))
-    G = rest.J_white
-    H = G.T @ G / s2
-    if len(cols) == 4:
-        H[3, 3] += 1.0 / sigma_h ** 2
+        thr = [_threshold(alpha, m, int(math.floor((d + PRIOR_DOF) * 10))) for d in dof.tolist()]
+    H = np.swapaxes(G, 1, 2) @ G / s2[:, None, None]
+    if n_p == 4:
+        H[:, 3, 3] += 1.0 / sigma_h ** 2
     H_inv = safe_inverse(H)
-    if not np.all(np.isfinite(H_inv)):
-        return math.nan, 1.0
-    S = s2 * np.eye(m) + Jk @ H_inv @ Jk.T
+    S = s2[:, None, None] * np.eye(m) + Jk @ H_inv @ np.swapaxes(Jk, 1, 2)
     if not calib.known:
-        cam_ids = sorted({u.camera.id for u in rest.corners.units} | {ck.units[0].camera.id})
-        Jc_rest = fits.whitener(rest.units) @ _cam_blocks(rest.corners, rest.theta, calib, cam_ids)
-        Jc_k = Tk @ _cam_blocks(ck, rest.theta, calib, cam_ids)
-        Gc = Jc_k - Jk @ (H_inv @ (G.T @ Jc_rest) / s2)
-        s2c = np.tile(calib.sigmas ** 2, len(cam_ids))
-        S += (Gc * s2c) @ Gc.T
-    try:
-        return float(e @ np.linalg.solve(S, e)), thr
-    except np.linalg.LinAlgError:
-        return math.nan, 1.0
+        for j, (_, k, rest, _) in enumerate(items):
+            ck = c.subset([k])
+            cam_ids = sorted({u.camera.id for u in rest.corners.units} | {ck.units[0].camera.id})
+            Jc_rest = fits.whitener(rest.units) @ _cam_blocks(rest.corners, rest.theta, calib, cam_ids)
+            Jc_k = fits.whitener([k]) @ _cam_blocks(ck, rest.theta, calib, cam_ids)
+            Gc = Jc_k - Jk[j] @ (H_inv[j] @ (G[j].T @ Jc_rest) / s2[j])
+            S[j] += (Gc * np.tile(calib.sigmas ** 2, len(cam_ids))) @ Gc.T
+    finite = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
+    for j, (i, _, _, _) in enumerate(items):
+        if not finite[j]:
+            continue
+        try:
+            out[i] = (float(e[j] @ np.linalg.solve(S[j], e[j])), thr[j])
+        except np.linalg.LinAlgError:
+            pass
+    return out
 
 
 def implausibility(fit: Fit, layout_fit: Fit, h: float, limits: Limits, sigma_px: float | None) -> str | None:
@@ -181,7 +192,8 @@ def implausibility(fit: Fit, layout_fit: Fit, h: float, limits: Limits, sigma_px
         return "pose is not finite"
     if not np.all(np.isfinite(fit.covariance)):
         return "pose is not determined by the corners (covariance not finite)"
-    if not evaluate(fit.corners, fit.theta).in_front:
+    ev = evaluate(fit.corners, fit.theta)
+    if not ev.in_front:
         return "pose puts the tags behind the camera"
     tilt = math.degrees(math.acos(np.clip(euler_rotation(*fit.theta[2:3], *fit.theta[4:6])[2, 2], -1.0, 1.0)))
     if tilt >= 90.0:
@@ -199,7 +211,7 @@ def implausibility(fit: Fit, layout_fit: Fit, h: float, limits: Limits, sigma_px
     if fit.method in ("sopt", "level"):
         if tilt > limits.max_tilt_deg:
             return f"roof tilted {tilt:.0f} deg (limit {limits.max_tilt_deg:.0f} deg)"
-        dz = float(np.max(np.abs(evaluate(fit.corners, fit.theta).z - h)))
+        dz = float(np.max(np.abs(ev.z - h)))
         if dz > limits.max_height_error_m:
             return (f"tag corners {dz:.2f} m from the vehicle height {h:.2f} m "
                     f"(limit {limits.max_height_error_m:.2f} m)")
