@@ -108,9 +108,10 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
                 dropped += misfits
                 fits = None if fit is None else (fit, fit)
             else:
+                yaw0 = screened.yaw_of(keep) if screened is not None else None
                 corners = corners.subset(keep) if len(keep) < len(corners.units) else corners
                 fits = _fit(method, corners, h, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
-                            height_model=height_model, calib=calib)
+                            height_model=height_model, calib=calib, yaw0=yaw0)
         except (np.linalg.LinAlgError, FloatingPointError, ValueError) as e:
             return _failed(method, corners, dropped, f"solver failed: {e}")
         if fits is None:
@@ -130,10 +131,13 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
 
 
 def _fit(method: str, c: Corners, h: float, *, weighting, sigma_px, sigma_h, mu,
-         height_model, calib: Calibration) -> tuple[Fit, Fit] | None:
-    """(the method's fit, the H.Opt. fit that judges the corners against the tag layout)."""
-    bas = fit_bas(c, sigma_px, covariance=(method == "bas"))
-    yaw0 = float(bas.theta[2]) if bas.converged and np.all(np.isfinite(bas.theta)) else None
+         height_model, calib: Calibration, yaw0: float | None = None) -> tuple[Fit, Fit] | None:
+    """(the method's fit, the H.Opt. fit that judges the corners against the tag layout). yaw0: H.Opt.'s
+    starting yaw when the outlier test's level fits already found one; else Bas.'s (SPEC). Either start
+    leads H.Opt. to the same minimum; the level fit's is nearer and costs nothing more."""
+    if method == "bas" or yaw0 is None:
+        bas = fit_bas(c, sigma_px, covariance=(method == "bas"))
+        yaw0 = float(bas.theta[2]) if bas.converged and np.all(np.isfinite(bas.theta)) else None
     start = initial_pose(c, h, yaw0)
     if start is None:
         return None

@@ -133,20 +133,21 @@ def estimate_sigma(ss: float, dof: float, floor: float = SIGMA_FLOOR_PX,
     return float(max(math.sqrt(s2), floor))
 
 
+MAX_CONDITION = 1e15  # a normal matrix more ill-conditioned than this does not determine its parameters
+
+
 def safe_inverse(A: np.ndarray) -> np.ndarray:
     """Inverse of a normal matrix (or of each of a stack (..., n, n)), all-inf where the data do not
-    determine the parameters."""
+    determine the parameters: singular, not finite, or a condition number (1-norm: within a factor n
+    of the 2-norm's) above MAX_CONDITION."""
     A = np.asarray(A, dtype=float)
     finite = np.isfinite(A).all(axis=(-2, -1))
-    every = bool(finite.all())
     try:
-        # One SVD gives both the condition number and the inverse.
-        u, s, vt = np.linalg.svd(A if every else np.where(finite[..., None, None], A, 0.0))
+        inv = np.linalg.inv(A if finite.all() else np.where(finite[..., None, None], A, 0.0))
     except np.linalg.LinAlgError:
-        return np.full_like(A, np.inf)
-    good = finite & (s[..., -1] > 0) & (s[..., 0] <= 1e15 * s[..., -1])
-    if good.all():
-        return (np.swapaxes(vt, -1, -2) / s[..., None, :]) @ np.swapaxes(u, -1, -2)
-    s = np.where(s > 0, s, 1.0)
-    inv = (np.swapaxes(vt, -1, -2) / s[..., None, :]) @ np.swapaxes(u, -1, -2)
-    return np.where(good[..., None, None], inv, np.inf)
+        if A.ndim == 2:
+            return np.full_like(A, np.inf)
+        return np.stack([safe_inverse(a) for a in A.reshape(-1, *A.shape[-2:])]).reshape(A.shape)
+    norm_1 = np.abs(A).sum(axis=-2).max(axis=-1)
+    good = finite & (norm_1 * np.abs(inv).sum(axis=-2).max(axis=-1) <= MAX_CONDITION)
+    return inv if good.all() else np.where(good[..., None, None], inv, np.inf)

@@ -13,13 +13,11 @@ from toptag.solvers.common import (
 )
 from toptag.solvers.lm import levenberg_marquardt
 from toptag.solvers.model import (
-    IZ,
     KNOWN,
     Calibration,
     Corners,
     calib_columns,
     calib_residual_rms,
-    evaluate,
     evaluate_level,
     planar_theta,
 )
@@ -74,11 +72,11 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
 
     res = levenberg_marquardt(fun, np.asarray(start, dtype=float))
     theta = planar_theta(res.theta[0], res.theta[1], res.theta[2], h)
-    ev = evaluate(c, theta)
-    J = ev.J_px[:, PLANAR]
+    r_px, J4, in_front = evaluate_level(c, res.theta[0], res.theta[1], res.theta[2], h)
+    J = J4[:, PLANAR]
     N_inv = safe_inverse(J.T @ J)
-    sigma = sigma_px if sigma_px is not None else estimate_sigma(float(ev.r_px @ ev.r_px), 2 * c.n - 3)
-    J_h = ev.J_px[:, IZ]
+    sigma = sigma_px if sigma_px is not None else estimate_sigma(float(r_px @ r_px), 2 * c.n - 3)
+    J_h = J4[:, 3]  # d(pixels)/d(roof height)
     dtheta_dh = -N_inv @ (J.T @ J_h)
     cov = sigma ** 2 * N_inv + sigma_h ** 2 * np.outer(dtheta_dh, dtheta_dh)
     height_rms = sigma_h * rms(J_h + J @ dtheta_dh)
@@ -90,10 +88,10 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
         cov = cov + (G * np.tile(calib.sigmas ** 2, J_c.shape[1] // len(calib.columns))) @ G.T
         calib_rms = calib_residual_rms(J, estimator, J_c, calib)
     note = None
-    if not ev.in_front:
+    if not in_front:
         note = "pose puts the tag behind the camera"
     elif not res.converged:
         note = "H.Opt. did not converge"
-    return Fit("hopt", theta, cov, rms(ev.r_px), sigma, c, converged=res.converged and ev.in_front,
-               dof=2 * c.n - 3, fit_rms_px=rms(ev.r_px), height_rms_px=height_rms, calib_rms_px=calib_rms,
+    return Fit("hopt", theta, cov, rms(r_px), sigma, c, converged=res.converged and in_front,
+               dof=2 * c.n - 3, fit_rms_px=rms(r_px), height_rms_px=height_rms, calib_rms_px=calib_rms,
                note=note)

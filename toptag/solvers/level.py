@@ -115,6 +115,22 @@ def noise_scale(turn_ratio: float | None) -> float:
     return math.sqrt(1.0 + TAG_RATIO ** 2 + turn_ratio ** 2) if turn_ratio else 1.0
 
 
+def _edge_pattern():
+    """Where edge_blocks' 32 entries go: (rows, columns, edge, which component of the edge direction u
+    gives the normal's (the normal is (-u_y, u_x)), sign)."""
+    rows, cols, edge, axis, sign = [], [], [], [], []
+    for a in range(4):
+        b = (a + 1) % 4
+        for row, corner, s in ((2 * a, a, 1.0), (2 * a, b, 1.0), (2 * a + 1, a, -1.0), (2 * a + 1, b, 1.0)):
+            for j, (component, flip) in enumerate(((1, -1.0), (0, 1.0))):
+                rows.append(row), cols.append(2 * corner + j), edge.append(a), axis.append(component)
+                sign.append(s * flip)
+    return tuple(np.array(v) for v in (rows, cols, edge, axis, sign))
+
+
+_EDGE_ROWS, _EDGE_COLS, _EDGE_OF, _NORMAL_AXIS, _EDGE_SIGN = _edge_pattern()
+
+
 def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
     """(T, 8, 8) per tag (4 corners each, rows in order): its corner residuals (x0, y0, x1, ...) to its
     edges' offsets and turns (turns over turn_ratio), edge normals from the observed quad. Residuals of
@@ -124,16 +140,11 @@ def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
     if not turn_ratio:
         return np.broadcast_to(np.eye(8), (n_tags, 8, 8)).copy()
     u = q[:, [1, 2, 3, 0]] - q  # edge a: corner a -> a+1
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = u / np.linalg.norm(u, axis=2, keepdims=True)
-    nrm = np.stack([-u[..., 1], u[..., 0]], axis=2) / 2.0  # (T,4,2)
+    u = u / np.linalg.norm(u, axis=2, keepdims=True)  # a degenerate quad gives NaN: solve() refuses it
+    # Edge a's offset (row 2a) is the mean of its two corners' moves along its normal (corners a and
+    # a+1, columns 2a.. and 2(a+1)..); its turn (row 2a+1) their difference, over turn_ratio.
     B = np.zeros((n_tags, 8, 8))
-    for a in range(4):
-        b = (a + 1) % 4
-        B[:, 2 * a, 2 * a:2 * a + 2] = nrm[:, a]
-        B[:, 2 * a, 2 * b:2 * b + 2] = nrm[:, a]
-        B[:, 2 * a + 1, 2 * a:2 * a + 2] = -nrm[:, a] / turn_ratio
-        B[:, 2 * a + 1, 2 * b:2 * b + 2] = nrm[:, a] / turn_ratio
+    B[:, _EDGE_ROWS, _EDGE_COLS] = u[:, _EDGE_OF, _NORMAL_AXIS] * (_EDGE_SIGN / 2.0 * np.where(_EDGE_ROWS % 2, 1.0 / turn_ratio, 1.0))
     if TAG_RATIO:
         # Offsets o with covariance s²(I + r² 11ᵀ): whitened by I − (1 − 1/sqrt(1 + 4r²))·11ᵀ/4.
         k = 1.0 - 1.0 / math.sqrt(1.0 + 4.0 * TAG_RATIO ** 2)
@@ -189,11 +200,12 @@ class LevelProblem:
             self._R0 = [c.cam_R[rows][0] for rows in self._cam_rows]
             self._centre0 = [-R.T @ c.cam_t[rows][0] for R, rows in zip(self._R0, self._cam_rows)]
 
-    def start(self, xyyaw) -> np.ndarray:
+    def start(self, pose) -> np.ndarray:
+        """p from (x, y, yaw) (the roof at h, cameras as calibrated) or (x, y, yaw, z)."""
         p = np.zeros(self.n_p)
-        p[:3] = xyyaw
+        p[:3] = pose[:3]
         if self.zfree:
-            p[3] = self.h
+            p[3] = pose[3] if len(pose) > 3 else self.h
         return p
 
     def theta(self, p) -> np.ndarray:
@@ -356,6 +368,7 @@ class SubsetFit:
     all_r_white: np.ndarray | None = None
     all_J_white: np.ndarray | None = None
     all_in_front: np.ndarray | None = None
+    information: np.ndarray | None = None  # the fit's normal matrix (with the height prior), whitened sigma_w
 
     @functools.cached_property
     def corners(self) -> Corners:
@@ -402,6 +415,13 @@ class SubsetFits:
         keys = [k for k in keys if k not in self._fits]
         if keys:
             self._fits.update(zip(keys, self._fit_batch(keys)))
+
+    def yaw_of(self, units) -> float | None:
+        """The yaw of the converged fit of the most of `units` (none of any other unit) fitted so far."""
+        units = set(int(u) for u in units)
+        fits = [f for key, f in self._fits.items() if f is not None and f.converged and isinstance(key[0], int)
+                and units.issuperset(key)]
+        return float(max(fits, key=lambda f: len(f.units)).theta[2]) if fits else None
 
     def own(self, k: int, calib: Calibration = KNOWN) -> SubsetFit | None:
         """Unit k fitted alone; with its camera's rotation correction as an unknown with its prior when
@@ -465,7 +485,7 @@ class SubsetFits:
             theta = planar_theta(p[0], p[1], p[2], p[3] if zfree else h)
             out.append(SubsetFit(key, c, p, theta, r_all[b, rows], J_all[b][rows][:, :n_p], dof,
                                  bool(res.converged[b] and np.all(front[b][corner_mask[b]])),
-                                 r_all[b], J_all[b], front[b]))
+                                 r_all[b], J_all[b], front[b], H[b]))
         return out
 
     def _fit_calibrated(self, k: int, calib: Calibration) -> SubsetFit | None:
@@ -486,6 +506,24 @@ class SubsetFits:
         dof = (2 * sub.n - float(np.trace(H_inv @ (Jw.T @ Jw))) / self.sigma_w ** 2
                if np.all(np.isfinite(H_inv)) else 0.0)
         return SubsetFit((k,), self.c, res.theta, prob.theta(res.theta), T @ r_px, Jw, dof, res.converged and ok)
+
+
+def _combined_start(fits: SubsetFits, units: list[int], weights) -> np.ndarray | None:
+    """The joint fit's start from the units' own fits: their poses averaged by their information (each
+    own fit's normal matrix, times its unit's weight squared): nearer the joint optimum than any one
+    of them, which saves the joint fit an iteration or two. None unless every own fit converged."""
+    own = [fits._fits.get((int(k),)) for k in units]
+    if not own or any(f is None or not f.converged or f.information is None for f in own):
+        return None
+    w2 = np.ones(len(own)) if weights is None else np.asarray(weights, dtype=float) ** 2
+    P = np.array([f.p for f in own])
+    P[:, 2] = P[0, 2] + (P[:, 2] - P[0, 2] + math.pi) % (2.0 * math.pi) - math.pi  # one branch of yaw
+    H = np.array([f.information for f in own]) * w2[:, None, None]
+    try:
+        p0 = np.linalg.solve(H.sum(axis=0), np.einsum("kij,kj->i", H, P))
+    except np.linalg.LinAlgError:
+        return None
+    return p0 if np.all(np.isfinite(p0)) else None
 
 
 def _level_poses(p: np.ndarray, h: float) -> np.ndarray:
@@ -626,7 +664,9 @@ def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float
             keep = [k for k, o in zip(keep, out) if not o]
             weights = weights[~out]
     kept = c if keep == list(range(len(c.units))) else c.subset(keep)
-    start = initial_pose(kept, h, None)
+    start = _combined_start(fits, keep, weights) if fits is not None and calib.known else None
+    if start is None:
+        start = initial_pose(kept, h, None)
     if start is None:
         return None, dropped
     # The screening's whitener of these units, when it weighs as this fit does (keep is in c's order).

@@ -76,8 +76,10 @@ def levenberg_marquardt_batch(fun: NormalFn, theta0, max_iter: int = 60, step_to
         # Marquardt scaling, with a floor so that a parameter the data does not see stays put.
         damping = np.array(lam)[:, None] * (d + 1e-12 * (d.sum(axis=1, keepdims=True) + 1.0))
         step, solved = _solve_batch(A + damping[:, :, None] * eye, -g)
-        promised = (-(g * step).sum(axis=1) - 0.5 * ((A @ step[..., None])[..., 0] * step).sum(axis=1)).tolist()
-        small = (np.abs(step).max(axis=1) < step_tol * (1.0 + np.abs(theta).max(axis=1))).tolist()
+        # The decrease the step promises, -g·step - step·A·step / 2, is within a factor 2 of -g·step / 2
+        # for any damping (and equal to it undamped).
+        promised = (-0.5 * (g * step).sum(axis=1)).tolist()
+        steps, thetas = step.tolist(), theta.tolist()
         tried = []
         for b in range(n_b):
             if not active[b]:
@@ -91,9 +93,11 @@ def levenberg_marquardt_batch(fun: NormalFn, theta0, max_iter: int = 60, step_to
                 tried.append(b)
         if not tried:
             continue
-        keep = np.ones(n_b, dtype=bool)
-        keep[tried] = False
-        step[keep] = 0.0
+        small = [max(map(abs, steps[b])) < step_tol * (1.0 + max(map(abs, thetas[b]))) for b in range(n_b)]
+        if len(tried) < n_b:
+            idle = np.ones(n_b, dtype=bool)
+            idle[tried] = False
+            step[idle] = 0.0
         trial = theta + step
         cost_new_v, A_new, g_new = fun(trial)
         cost_new = cost_new_v.tolist()

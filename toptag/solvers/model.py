@@ -162,17 +162,21 @@ def build_corners(vehicle: Vehicle, observations: list[TagObservation]) -> Corne
 
 # ---- pose ------------------------------------------------------------------------------------
 def euler_rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    return _euler_with_derivatives(yaw, pitch, roll)[0]
+    """R = Rz(yaw) Ry(pitch) Rx(roll), written out."""
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cr, sr = math.cos(roll), math.sin(roll)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
 
 
 def _euler_with_derivatives(yaw, pitch, roll):
     cy, sy = math.cos(yaw), math.sin(yaw)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cr, sr = math.cos(roll), math.sin(roll)
-    # R = Rz(yaw) Ry(pitch) Rx(roll) and its partial derivatives, written out (one array each).
-    R = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                  [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                  [-sp, cp * sr, cp * cr]])
+    # R and its partial derivatives, written out (one array each).
+    R = euler_rotation(yaw, pitch, roll)
     dyaw = np.array([[-sy * cp, -sy * sp * sr - cy * cr, -sy * sp * cr + cy * sr],
                      [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
                      [0.0, 0.0, 0.0]])
@@ -216,6 +220,14 @@ def roof_world(theta, points) -> tuple[np.ndarray, np.ndarray]:
     dP[:, :, IPITCH] = rot[:, 3:6]
     dP[:, :, IROLL] = rot[:, 6:9]
     return P, dP
+
+
+def depths_and_heights(c: Corners, theta) -> tuple[np.ndarray, np.ndarray]:
+    """At pose theta: every observed corner's depth in its camera (N,) and every roof corner's world z
+    (M,), without evaluate's pixels and Jacobians."""
+    P = c.roof_points @ euler_rotation(theta[IYAW], theta[IPITCH], theta[IROLL]).T + \
+        np.array([theta[IX], theta[IY], theta[IZ]])
+    return np.einsum("nj,nj->n", c.cam_R[:, 2, :], P[c.corner_of]) + c.cam_t[:, 2], P[:, 2]
 
 
 @dataclass

@@ -39,11 +39,11 @@ from toptag.solvers.common import SIGMA_PRIOR_PX, Fit, safe_inverse
 from toptag.solvers.level import SubsetFits, noise_scale
 from toptag.solvers.model import (
     KNOWN,
+    MIN_DEPTH,
     Calibration,
     Corners,
     calib_jacobian,
-    euler_rotation,
-    evaluate,
+    depths_and_heights,
 )
 
 # Per corner coordinate: the real cameras' corner noise (common.SIGMA_PRIOR_PX), pooled with a lone
@@ -192,10 +192,11 @@ def implausibility(fit: Fit, layout_fit: Fit, h: float, limits: Limits, sigma_px
         return "pose is not finite"
     if not np.all(np.isfinite(fit.covariance)):
         return "pose is not determined by the corners (covariance not finite)"
-    ev = evaluate(fit.corners, fit.theta)
-    if not ev.in_front:
+    depth, z = depths_and_heights(fit.corners, fit.theta)
+    if not (depth > MIN_DEPTH).all():
         return "pose puts the tags behind the camera"
-    tilt = math.degrees(math.acos(np.clip(euler_rotation(*fit.theta[2:3], *fit.theta[4:6])[2, 2], -1.0, 1.0)))
+    # The roof normal's angle from up: R[2, 2] = cos(pitch)·cos(roll).
+    tilt = math.degrees(math.acos(min(max(math.cos(fit.theta[4]) * math.cos(fit.theta[5]), -1.0), 1.0)))
     if tilt >= 90.0:
         return f"pose has the roof facing down (tilt {tilt:.0f} deg): tags seen from below or mirrored"
     for f in (layout_fit, fit) if fit is not layout_fit else (layout_fit,):
@@ -205,13 +206,14 @@ def implausibility(fit: Fit, layout_fit: Fit, h: float, limits: Limits, sigma_px
         if not f.fit_rms_px <= limit:
             return (f"corners do not match the tag layout: RMS residual {f.fit_rms_px:.2f} px "
                     f"above the {limit:.2f} px limit")
-    pos_sigma = math.sqrt(max(np.linalg.eigvalsh(fit.covariance[:2, :2]).max(), 0.0))
+    (a, b), (_, d) = fit.covariance[:2, :2].tolist()
+    pos_sigma = math.sqrt(max((a + d) / 2.0 + math.hypot((a - d) / 2.0, b), 0.0))  # largest eigenvalue
     if pos_sigma > limits.max_position_sigma_m:
         return f"position uncertainty {pos_sigma:.2f} m above the {limits.max_position_sigma_m:.2f} m limit"
     if fit.method in ("sopt", "level"):
         if tilt > limits.max_tilt_deg:
             return f"roof tilted {tilt:.0f} deg (limit {limits.max_tilt_deg:.0f} deg)"
-        dz = float(np.max(np.abs(ev.z - h)))
+        dz = float(np.max(np.abs(z - h)))
         if dz > limits.max_height_error_m:
             return (f"tag corners {dz:.2f} m from the vehicle height {h:.2f} m "
                     f"(limit {limits.max_height_error_m:.2f} m)")
