@@ -11,6 +11,7 @@ import argparse
 import bisect
 import json
 import logging
+import math
 import threading
 import time
 from collections import defaultdict, deque
@@ -91,9 +92,19 @@ def frame_kind(modes: dict[str, str]) -> str:
     return "nothing to do"
 
 
+# What a fused "ok" pose claims: its error within 3 sigma (+ HOLD_SLACK_M for the truth's interpolation), and
+# cm-level accuracy when its sigma is at most CONFIDENT_SIGMA_M. A pose is "ok" up to the filter's
+# degraded_pos_sigma (0.5 m): on a machine too busy to send many fixes, "ok" poses may be 10+ cm off and
+# honest about it, which the RMS of all "ok" poses alone would not tell from a wrong filter.
+CONFIDENT_SIGMA_M = 0.05
+HOLD_SLACK_M = 0.01
+
+
 class BusScore:
     def __init__(self):
         self.fix_err, self.fused_err, self.latency_ms = ErrorStats(), ErrorStats(), ErrorStats()
+        self.fused_confident_err = ErrorStats()  # "ok" poses whose sigma is at most CONFIDENT_SIGMA_M
+        self.fused_held = 0  # "ok" poses within 3 sigma (+ HOLD_SLACK_M) of the truth
         # Where the latency goes: capture -> fix sent at the RSU (frame transport, decoding, waiting,
         # processing), of which processing, and fix sent -> arrival here.
         self.rsu_ms, self.processing_ms, self.fix_transit_ms = ErrorStats(), ErrorStats(), ErrorStats()
@@ -205,7 +216,8 @@ class Monitor:
             if b.in_session:
                 b.session_fused += 1
                 b.session_fused_ok += m.health.status == "ok"
-            b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status))
+            sigma = math.sqrt(max(m.covariance[0][0], m.covariance[1][1], 0.0))
+            b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status, sigma))
 
     def _heard(self) -> None:
         if self.first_message is None:
@@ -227,13 +239,17 @@ class Monitor:
                     keep_f.append((t, x, y))
             b.pending_fixes = keep_f
             keep_u = []
-            for t, x, y, status in b.pending_fused:
+            for t, x, y, status, sigma in b.pending_fused:
                 truth = track.at(t)
                 if truth is not None:
                     if status == "ok":  # a degraded pose says so itself; score what claims to be good
-                        b.fused_err.add(float(np.hypot(x - truth[0], y - truth[1])))
+                        err = float(np.hypot(x - truth[0], y - truth[1]))
+                        b.fused_err.add(err)
+                        b.fused_held += err <= 3 * sigma + HOLD_SLACK_M
+                        if sigma <= CONFIDENT_SIGMA_M:
+                            b.fused_confident_err.add(err)
                 elif t > newest:
-                    keep_u.append((t, x, y, status))
+                    keep_u.append((t, x, y, status, sigma))
             b.pending_fused = keep_u
 
     # ---- outputs --------------------------------------------------------------------------------
@@ -275,6 +291,9 @@ class Monitor:
                     "fused_ok_samples": b.fused_err.n,
                     "fused_pos_rms_m": b.fused_err.rms,
                     "fused_pos_max_m": b.fused_err.max,
+                    "fused_ok_held_fraction": round(b.fused_held / b.fused_err.n, 4) if b.fused_err.n else None,
+                    "fused_confident_samples": b.fused_confident_err.n,
+                    "fused_confident_pos_rms_m": b.fused_confident_err.rms,
                     "last_fix_err_m": b.fix_err.last,
                     "last_fused_err_m": b.fused_err.last,
                     "last_fused_status": b.fused_status,

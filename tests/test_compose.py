@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import SUMMARY_LINES
+from conftest import SUMMARY_LINES, assert_fused_claims_hold
 from dockerhost import (
     STANDIN_PYTHON,
     DockerUnavailable,
@@ -166,9 +166,7 @@ def _assert_localized(report: dict) -> None:
         assert b["fixes_received"] >= 5 and len(rsus) >= 2, (bus, b["fixes_by_rsu"])
         assert b["fix_pos_rms_m"] is not None and b["fix_pos_rms_m"] < 0.10, (bus, b["fix_pos_rms_m"])
         assert b["fused_ok_samples"] >= 10, (bus, b["fused_ok_samples"])
-        # held to the fixes' 10 cm, as in tests/test_demo.py: bus-17 (fixes 6-7 cm RMS on the calibrated image
-        # model) fused to 7.2 cm in a short compose run
-        assert b["fused_pos_rms_m"] < 0.10, (bus, b["fused_pos_rms_m"])
+        assert_fused_claims_hold(bus, b)
 
 
 def _assert_clean_exit(states: list[dict], expected: set[str]) -> None:
