@@ -1,5 +1,8 @@
 """The RSU pipeline on rendered frames: acquisition, tracking in predicted regions, several buses,
 falling back to acquisition, never reporting an unannounced bus, equal accuracy to full-frame search."""
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -13,6 +16,7 @@ from toptag.detection import DetectorSettings
 from toptag.geometry import vehicle_to_world
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.rsu.regions import acquisition_bands, tag_extent_by_row
+from toptag.rsu.whereabouts import ViewGrid, Whereabouts, tile_boxes
 from toptag.vehicle import Vehicle
 
 pytestmark = pytest.mark.unit
@@ -228,3 +232,98 @@ def test_the_code_bags_roof_height_sigma_is_the_level_solvers_prior():
         assert abs(tight.z - bus.height) < 0.006, tight.z
         assert np.trace(tight.covariance[:2, :2]) < np.trace(loose.covariance[:2, :2])
     assert solved >= 2
+
+
+def test_whereabouts_grow_at_bus_speed_and_lose_what_was_searched_in_vain():
+    """Where an unfound bus can be: everywhere at first; nowhere in view right after the whole view was
+    searched in vain; back in view from beyond it as time passes; out of view when its coarse position
+    is far away, and back once that is out of date."""
+    camera, bus = rsu_camera("sw"), bundled_vehicle("bus_double")
+    grid = ViewGrid.build(camera, bus.height, float(np.hypot(bus.length, bus.width)) / 2)
+    wb = Whereabouts(grid, speed_mps=10.0)
+    wb.advance(0)
+    everywhere = wb.tile_mask()
+    assert wb.in_view and everywhere.all()
+    wb.searched(everywhere)
+    assert not wb.in_view and not wb.tile_mask().any()
+    wb.advance(100_000_000)  # 1 m: a bus can have come in from beyond the view
+    assert wb.in_view
+    inside = grid.in_view & wb.possible.ravel()
+    assert 0 < inside.sum() < 0.5 * grid.in_view.sum()
+
+    far = Whereabouts(grid, speed_mps=10.0)
+    far.advance(0)
+    far.limit(-9.0 - 40.0, -9.0 - 40.0, 6.0)  # behind the south-west RSU
+    assert not far.in_view
+    far.advance(1_000_000_000)  # the same position a second later: 10 m closer at most, still out of view
+    far.limit(-9.0 - 40.0, -9.0 - 40.0, 16.0)
+    assert not far.in_view
+    near = Whereabouts(grid, speed_mps=10.0)
+    near.advance(0)
+    near.limit(5.0, 5.0, 4.0)  # in the middle of the view: only part of the image can hold it
+    assert near.in_view and 0 < near.tile_mask().sum() < everywhere.sum()
+
+
+def test_tile_boxes_cover_exactly_the_marked_tiles():
+    tiles = np.zeros((12, 16), bool)
+    tiles[0, :] = True
+    tiles[3:6, 2:5] = True
+    tiles[4, 10] = True
+    boxes = tile_boxes(960, 720, tiles)
+    covered = np.zeros((720, 960), int)
+    for b in boxes:
+        covered[b.y0:b.y1, b.x0:b.x1] += 1
+    assert covered.max() == 1  # disjoint
+    expect = np.kron(tiles, np.ones((60, 60), int))
+    assert np.array_equal(covered, expect)
+
+
+def test_a_lost_track_and_a_coarse_position_narrow_the_search(bus_pass):
+    """A bus tracked, then hidden for three frames: its track is lost and the next search covers only
+    where it can have gone since its last fix, where it is found again. A bus announced with a coarse
+    position in view is searched for around it, not over the whole frame."""
+    camera, bus, frames = bus_pass
+    empty = render(camera, [], model=ImageModel(), rng=np.random.default_rng(1))
+    whole = RsuPipeline(camera, PipelineSettings(search_where_possible=False))
+    whole.add_vehicle(bus)
+    everything = whole.process(empty, frames[0][0]).pixels_searched
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    for i in shown[:10]:
+        p.process(frames[i][1], frames[i][0])
+    assert p.tracks[bus.id].found
+    t = frames[shown[9]][0]
+    for k in (1, 2, 3):
+        p.process(empty, t + k * 100_000_000)
+    assert not p.tracks[bus.id].found
+    t_ns, img, truth, _ = frames[shown[9] + 4]
+    res = p.process(img, t_ns)
+    vr = res.vehicles[bus.id]
+    assert res.acquired and 0 < res.pixels_searched < everything
+    assert vr.solution is not None and vr.solution.ok and np.hypot(vr.solution.x - truth[0], vr.solution.y - truth[1]) < 0.3
+
+    c = RsuPipeline(camera)
+    c.add_vehicle(bus)
+    t_ns, img, truth, _ = frames[shown[len(shown) // 2]]
+    c.coarse_position(bus.id, t_ns, truth[0] + 1.0, truth[1] - 1.0, 0.5)
+    res = c.process(img, t_ns)
+    assert res.acquired and 0 < res.pixels_searched < everything
+    assert res.vehicles[bus.id].solution is not None and res.vehicles[bus.id].solution.ok
+
+
+def test_bench_rsu_scenario_replays_the_demos_rsus_offline(capsys):
+    """`toptag bench rsu --scenario`: every RSU of a scenario on every frame, with sessions, coarse
+    positions and hints as in the demo: it counts their work and finds the bus when it is in view."""
+    from services.rsu import bench
+
+    short = Path(__file__).resolve().parents[1] / "toptag" / "data" / "demo" / "scenario-short.json"
+    assert bench.main(["--scenario", str(short), "--duration", "12"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out["rsus"]) == {"rsu-sw", "rsu-ne"}
+    for r in out["rsus"].values():
+        assert r["frames_in_session"] > 50 and r["cpu_s"] > 0
+        assert 0 <= r["searches_with_no_bus_in_view"] <= r["searches"]
+        assert sum(k["frames"] for k in r["by_kind"].values()) == r["frames_in_session"]
+    assert sum(r["fixes"] for r in out["rsus"].values()) > 20
+    assert out["fix_rate_in_view"] >= 0.8 and 0 < out["fix_fresh_in_session"] <= 1

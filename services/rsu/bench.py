@@ -114,7 +114,19 @@ def main(argv: list[str]) -> int:
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--fps", type=float, default=10.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scenario", nargs="?", const="", default=None, metavar="FILE",
+                   help="instead: every RSU of a scenario (default: the bundled demo) on every frame of its first "
+                        "--duration s, offline, with sessions, coarse positions and hints as in the demo; CPU per "
+                        "frame by kind of work, searches, fix rate (services/rsu/scenario_bench.py)")
+    p.add_argument("--duration", type=float, default=60.0, help="with --scenario: seconds of scenario (default 60)")
     args = p.parse_args(argv)
+    if args.scenario is not None:
+        from services.rsu.scenario_bench import run_scenario
+
+        result = run_scenario(args.scenario or None, args.duration,
+                              progress=lambda m: print(m, file=sys.stderr, flush=True))
+        print(json.dumps(result, indent=1))
+        return 0
     result = run(args.width, args.height, args.frames, args.fps, args.seed,
                  progress=lambda m: print(m, file=sys.stderr, flush=True))
     print(json.dumps(result, indent=1))

@@ -29,12 +29,12 @@ from toptag.rsu.regions import (
     Band,
     Box,
     acquisition_bands,
-    disc_in_view,
     merge_boxes,
     projected_side_px,
     tag_region,
 )
 from toptag.rsu.tracking import SPEED_MARGIN, TrackSettings, VehicleTrack
+from toptag.rsu.whereabouts import ViewGrid, Whereabouts, tile_boxes
 from toptag.solvers import PoseSolution, canonical_method, solve
 from toptag.solvers.calibrated import with_calibration
 from toptag.units import s_from_ns
@@ -55,6 +55,10 @@ class PipelineSettings(BaseModel):
     acquire_mode: Literal["pyramid", "full"] = "pyramid"
     acquire_min_side_px: float = 24.0
     acquire_max_decimate: int = 8
+    # The detector's second decode pass (DetectorSettings.unrefined_pass) in acquisition's bands: it
+    # doubles a search's cost (most of it in the far, enlarged band) and, on the demo's frames, found no
+    # bus the first pass missed (`toptag bench rsu --scenario`: same fixes, 0.76 -> 0.56 cores).
+    acquire_unrefined_pass: bool = False
     # Tags whose shortest side is below this many pixels are detected in a 2x enlarged image: at 20-25 m
     # on 960x720 a cell is 1-2 px tall and decoding fails without it.
     upsample_below_px: float = 24.0
@@ -67,13 +71,18 @@ class PipelineSettings(BaseModel):
     # means a search on every frame).
     acquire_idle_period_s: float = Field(default=0.25, ge=0.0)
     # Another RSU's fix of a bus this camera has not found tells where to look (or that the bus is out
-    # of view and nothing needs searching); it is trusted for this long, with this extra margin for the
-    # two cameras' calibration differences.
+    # of view and nothing needs searching); it is tracked from for this long, with this extra margin for
+    # the two cameras' calibration differences. Older, it still bounds where acquisition searches (at the
+    # distance the bus may have driven since).
     hint_max_age_s: float = 1.0
     hint_margin_m: float = 0.3
-    # The bus's own coarse position (GNSS, in its Approach) says when it cannot be in view yet, so that
-    # acquisition waits; trusted for this long, at 3 sigma plus the distance it may have driven since.
+    # The bus's own coarse position (GNSS, in its Approach) bounds where it can be, so that acquisition
+    # searches only there (or waits while that is out of view); trusted for this long, at 3 sigma plus
+    # the distance it may have driven since.
     coarse_max_age_s: float = 2.5
+    # Acquisition searches only where an unfound bus can be (toptag.rsu.whereabouts): after a search in
+    # vain, only where it can have come since. False: the whole frame every time.
+    search_where_possible: bool = True
     crop_pad_px: float = 6.0
     workers: int = Field(default=2, ge=1)
 
@@ -88,7 +97,7 @@ class DetectJob:
     box: Box
     decimate: float = 1.0
     upsample: int = 1
-    searching: bool = True  # no tag known there yet: decode thoroughly (DetectorSettings.unrefined_pass)
+    thorough: bool = True  # no tag known there: decode with the second pass (DetectorSettings.unrefined_pass)
 
     @property
     def cost(self) -> float:
@@ -137,7 +146,7 @@ class _DetectorPool:
         def one(job: DetectJob):
             b = job.box
             return self._detector(job.decimate).detect_raw(gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample,
-                                                           None if job.searching else False)
+                                                           None if job.thorough else False)
 
         if self.executor is None or len(jobs) < 2:
             return [one(j) for j in jobs]
@@ -160,6 +169,8 @@ class RsuPipeline:
         self._hints: dict[str, VehicleTrack] = {}
         self._coarse: dict[str, tuple[int, float, float, float]] = {}  # id -> (t_ns, x, y, sigma)
         self._last_acquire_ns: int | None = None
+        self._grids: dict[tuple[float, float], ViewGrid] = {}
+        self._whereabouts: dict[str, Whereabouts] = {}
 
     # ---- code bags ----------------------------------------------------------------------------
     def add_vehicle(self, vehicle: Vehicle) -> None:
@@ -171,20 +182,35 @@ class RsuPipeline:
         self.tracks.pop(vehicle_id, None)
         self._hints.pop(vehicle_id, None)
         self._coarse.pop(vehicle_id, None)
+        self._whereabouts.pop(vehicle_id, None)
 
     def coarse_position(self, vehicle_id: str, t_ns: int, x: float, y: float, sigma_m: float) -> None:
-        """The vehicle's own rough position (metres of error): used only to know it is out of view."""
+        """The vehicle's own rough position (metres of error): bounds where acquisition searches."""
         if vehicle_id in self.vehicles:
             self._coarse[vehicle_id] = (t_ns, x, y, sigma_m)
 
-    def _surely_out_of_view(self, vid: str, t_ns: int) -> bool:
-        c = self._coarse.get(vid)
-        if c is None or s_from_ns(abs(t_ns - c[0])) > self.settings.coarse_max_age_s:
-            return False
-        t, x, y, sigma = c
+    def _whereabouts_at(self, vid: str, t_ns: int) -> Whereabouts:
+        """Where the unfound vehicle can be at t_ns: grown since the last frame, cut to its coarse
+        position and to the latest hint, each widened by the distance the bus may have driven since."""
         v = self.vehicles[vid]
-        reach = 3 * sigma + BUS_MAX_SPEED_MPS * SPEED_MARGIN * s_from_ns(abs(t_ns - t)) + np.hypot(v.length, v.width) / 2
-        return not disc_in_view(self.camera, x, y, reach, v.height - 0.3, v.height + 0.3)
+        wb = self._whereabouts.get(vid)
+        if wb is None:
+            key = (round(v.height, 2), round(float(np.hypot(v.length, v.width)) / 2, 2))
+            if key not in self._grids:
+                self._grids[key] = ViewGrid.build(self.camera, key[0], key[1], pad_px=self.settings.crop_pad_px)
+            wb = self._whereabouts[vid] = Whereabouts(self._grids[key], BUS_MAX_SPEED_MPS * SPEED_MARGIN)
+        wb.advance(t_ns)
+        c, h = self._coarse.get(vid), self._hints.get(vid)
+        if c is not None and s_from_ns(abs(t_ns - c[0])) <= self.settings.coarse_max_age_s:
+            wb.limit(c[1], c[2], 3 * c[3] + self._driven(c[0], t_ns))
+        if h is not None:
+            wb.limit(h.pose[0], h.pose[1], self.settings.hint_margin_m + self._driven(h.t_ns, t_ns))
+        return wb
+
+    @staticmethod
+    def _driven(since_ns: int, t_ns: int) -> float:
+        """The farthest a bus can have gone between the two times."""
+        return BUS_MAX_SPEED_MPS * SPEED_MARGIN * s_from_ns(abs(t_ns - since_ns))
 
     def hint(self, vehicle_id: str, t_ns: int, x: float, y: float, yaw: float, z: float) -> None:
         """A pose of an announced vehicle from elsewhere (another RSU's fix)."""
@@ -210,10 +236,11 @@ class RsuPipeline:
         pool = self._pool()
         tracked = [vid for vid, tr in self.tracks.items() if tr.found and self.settings.tracking]
         hinted = [vid for vid in self.vehicles if vid not in tracked and self._fresh_hint(vid, t_ns)]
-        away = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted
-                and self._surely_out_of_view(vid, t_ns)]
-        unfound = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted and vid not in away]
+        rest = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted]
         t0 = time.perf_counter()
+        where = {vid: self._whereabouts_at(vid, t_ns) for vid in rest} if self._bounded() else {}
+        away = [vid for vid in rest if vid in where and not where[vid].in_view]
+        unfound = [vid for vid in rest if vid not in away]
 
         jobs: list[DetectJob] = []
         regions_of: dict[str, int] = {}
@@ -224,9 +251,12 @@ class RsuPipeline:
             jobs += vjobs
         jobs = _merge_jobs(jobs)
         result.acquired = bool(unfound) and self._acquisition_due(t_ns, bool(tracked))
+        searched_tiles = None
         if result.acquired:
             self._last_acquire_ns = t_ns
-            jobs += self._acquisition_jobs([self.vehicles[v] for v in unfound])
+            if where:
+                searched_tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound])
+            jobs += self._acquisition_jobs([self.vehicles[v] for v in unfound], searched_tiles)
 
         if jobs:
             gray = gray() if callable(gray) else gray
@@ -257,14 +287,32 @@ class RsuPipeline:
                 sol = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
             if sol is not None and sol.ok:
                 self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
+                self._whereabouts.pop(vid, None)
             elif was_tracked:
-                self.tracks[vid].miss()
+                self._lost_track(vid)
+            elif searched_tiles is not None and vid in unfound and not obs:
+                where[vid].searched(searched_tiles)
             if sol is None and mode not in ("waiting", "out_of_view"):
                 mode = "searching"
             fix = Fix.from_solution(sol, t_ns, self.camera.id, seq) if sol is not None and sol.ok else None
             result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0), obs, fix)
         result.solve_ms = (time.perf_counter() - t1) * 1e3
         return result
+
+    def _bounded(self) -> bool:
+        """Is acquisition limited to where the buses can be? (Not in the search-every-frame mode.)"""
+        return self.settings.tracking and self.settings.search_where_possible
+
+    def _lost_track(self, vid: str) -> None:
+        """A tracked frame without the bus: after a few, the track is lost and the bus is searched for
+        where it can have gone since its last fix (a widening region, not the whole frame)."""
+        track = self.tracks[vid]
+        last = (track.t_ns, *track.pose[:2])
+        track.miss()
+        if not track.found and self._bounded():
+            self._whereabouts.pop(vid, None)
+            wb = self._whereabouts_at(vid, last[0])
+            wb.limit(last[1], last[2], self.settings.hint_margin_m)
 
     def _acquisition_due(self, t_ns: int, others_tracked: bool) -> bool:
         s = self.settings
@@ -273,7 +321,9 @@ class RsuPipeline:
         period = s.acquire_period_s if others_tracked else s.acquire_idle_period_s
         return not s_from_ns(abs(t_ns - self._last_acquire_ns)) < period  # a clock jump back: due
 
-    def _acquisition_jobs(self, vehicles: list[Vehicle]) -> list[DetectJob]:
+    def _acquisition_jobs(self, vehicles: list[Vehicle], tiles: np.ndarray | None = None) -> list[DetectJob]:
+        """The search for these vehicles: the pyramid's bands, only over the marked image tiles (and
+        around them by a tag's size, so that no tag is cut) when tiles are given."""
         s = self.settings
         if s.acquire_mode == "full":
             return [DetectJob(Box(0, 0, self.camera.width, self.camera.height), s.detector.quad_decimate)]
@@ -284,7 +334,20 @@ class RsuPipeline:
         if key not in self._bands:
             self._bands[key] = acquisition_bands(self.camera, roof, size, s.acquire_min_side_px,
                                                  s.acquire_max_decimate, s.upsample_below_px)
-        return [DetectJob(b.box, b.decimate, b.upsample) for b in self._bands[key]]
+        bands = self._bands[key]
+        thorough = s.acquire_unrefined_pass
+        if tiles is None:
+            return [DetectJob(b.box, b.decimate, b.upsample, thorough) for b in bands]
+        w, h = self.camera.width, self.camera.height
+        regions = tile_boxes(w, h, tiles)
+        jobs = []
+        for b in bands:
+            pad = int(np.ceil(b.tag_px + s.crop_pad_px))
+            grown = [Box(max(r.x0 - pad, b.box.x0), max(r.y0 - pad, b.box.y0), min(r.x1 + pad, b.box.x1),
+                         min(r.y1 + pad, b.box.y1)) for r in regions]
+            for box in merge_boxes([g for g in grown if min(g.x1 - g.x0, g.y1 - g.y0) * b.upsample >= 8 * b.decimate]):
+                jobs.append(DetectJob(box, b.decimate, b.upsample, thorough))
+        return jobs
 
     def _fresh_hint(self, vid: str, t_ns: int) -> bool:
         h = self._hints.get(vid)
@@ -299,7 +362,7 @@ class RsuPipeline:
             if box is not None:
                 corners = vehicle_to_world(vehicle.tag_corners(tid), p.x, p.y, p.yaw, p.z)
                 jobs.append(DetectJob(box, 1.0, self._upsample_for(projected_side_px(self.camera, corners)),
-                                      searching=False))
+                                      thorough=False))
         return jobs
 
     def _upsample_for(self, side_px: float) -> int:
@@ -327,7 +390,7 @@ def _merge_jobs(jobs: list[DetectJob]) -> list[DetectJob]:
     for box in merged:
         parts = [j for j in jobs if box.overlaps(j.box)]
         up = max((j.upsample for j in parts), default=1)
-        out.append(DetectJob(box, 1.0, up, searching=any(j.searching for j in parts) or not parts))
+        out.append(DetectJob(box, 1.0, up, thorough=any(j.thorough for j in parts) or not parts))
     return out
 
 

@@ -62,20 +62,6 @@ def tag_region(camera: Camera, vehicle: Vehicle, tag_id: int, x: float, y: float
     return bounding_box(camera, np.vstack(pts), pad_px)
 
 
-def disc_in_view(camera: Camera, x: float, y: float, radius: float, z_low: float, z_high: float,
-                 spacing: float = 0.75) -> bool:
-    """Could anything within `radius` of (x, y), between heights z_low and z_high, appear in the image?
-    (Sampled every `spacing` metres: finer than any tag plate.)"""
-    n = int(np.ceil(radius / spacing))
-    g = np.arange(-n, n + 1) * spacing
-    gx, gy = np.meshgrid(g, g)
-    inside = gx ** 2 + gy ** 2 <= radius ** 2
-    pts = np.column_stack([gx[inside] + x, gy[inside] + y])
-    world = np.vstack([np.column_stack([pts, np.full(len(pts), z)]) for z in (z_low, z_high)])
-    front = camera.to_camera(world)[:, 2] > 0.1
-    return bool(front.any() and camera.in_image(camera.project(world[front])).any())
-
-
 def merge_boxes(boxes: list[Box], gap: int = 0) -> list[Box]:
     """Union overlapping boxes until the rest are disjoint (a tag inside one input box stays inside one output)."""
     out = [b for b in boxes if b is not None]
@@ -101,17 +87,25 @@ class Band:
     box: Box
     decimate: float = 1.0
     upsample: int = 1
+    tag_px: float = 0.0  # the largest extent (either axis, px) of a tag centred on the band's rows
 
 
 def tag_extent_by_row(camera: Camera, roof_z: float, tag_size: float) -> tuple[np.ndarray, np.ndarray]:
     """For each image row, (shortest side, vertical extent) in px of a tag of `tag_size` lying flat at
     `roof_z` whose centre appears on that row, worst cases over yaw; zeros where the plane is not seen."""
+    side, extent, _ = _tag_sizes_by_row(camera, roof_z, tag_size)
+    return side, extent
+
+
+def _tag_sizes_by_row(camera: Camera, roof_z: float, tag_size: float):
+    """tag_extent_by_row's two, and the largest extent along either axis."""
     step = max(1, camera.height // 240)  # the sizes vary slowly with the row: sample, then interpolate
     rows = np.arange(0, camera.height, step, dtype=float)
     centre_px = np.column_stack([np.full_like(rows, (camera.width - 1) / 2.0), rows])
     ground = camera.backproject_to_plane(centre_px, roof_z)
     side = np.zeros(rows.size)
     extent = np.zeros(rows.size)
+    reach = np.zeros(rows.size)
     half = tag_size / 2
     square = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]])
     for r in np.flatnonzero(np.all(np.isfinite(ground), axis=1)):
@@ -121,8 +115,10 @@ def tag_extent_by_row(camera: Camera, roof_z: float, tag_size: float) -> tuple[n
             shortest = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min()
             side[r] = shortest if side[r] == 0 else min(side[r], shortest)
             extent[r] = max(extent[r], np.ptp(uv[:, 1]))
+            reach[r] = max(reach[r], np.ptp(uv, axis=0).max())
     every_row = np.arange(camera.height)
-    return np.interp(every_row, rows, side), np.interp(every_row, rows, extent)
+    return (np.interp(every_row, rows, side), np.interp(every_row, rows, extent),
+            np.interp(every_row, rows, reach))
 
 
 def acquisition_bands(camera: Camera, roof_z: float, tag_size: float, min_side_px: float,
@@ -133,7 +129,7 @@ def acquisition_bands(camera: Camera, roof_z: float, tag_size: float, min_side_p
     `upsample_below_px` are searched enlarged 2x. A band owns the tags centred on its rows and reaches
     half a tag (with its white border) beyond them, so no tag is cut by a band edge. Rows above the
     horizon of the roof plane are skipped."""
-    side, extent = tag_extent_by_row(camera, roof_z, tag_size)
+    side, extent, reach = _tag_sizes_by_row(camera, roof_z, tag_size)
     visible = np.flatnonzero(side > 0)
     if visible.size == 0:
         return []
@@ -150,6 +146,6 @@ def acquisition_bands(camera: Camera, roof_z: float, tag_size: float, min_side_p
             top, bottom = (int(np.ceil(0.6 * extent[i])) + 4 for i in (start, r - 1))
             box = Box(0, max(0, start - top), camera.width, min(camera.height, r + bottom))
             level = float(levels[start])
-            bands.append(Band(box, max(level, 1.0), 2 if level < 1 else 1))
+            bands.append(Band(box, max(level, 1.0), 2 if level < 1 else 1, float(reach[start:r].max())))
             start = r
     return bands

@@ -1,0 +1,165 @@
+"""`toptag bench rsu --scenario`: the demo's RSUs, offline, on every frame of a scenario.
+
+The live demo's figures depend on the machine's load (a busy RSU skips frames, which changes what it
+does next). This plays the scenario's cameras frame by frame in simulated time instead and feeds each
+RSU pipeline what its service would get: a bus's code bag while the bus is inside the intersection's
+approach radius (toptag.fusion.presence on the true position), the bus's coarse position once a
+second as its Approach carries it (its latest GNSS fix, at most 5 s old; none inside the GNSS shadow:
+the fused pose the bus agent also sends is left out, so this is the pessimistic case), and every other
+RSU's fixes as hints. Each frame's processing (decode, search or track, solve) is timed in process CPU
+time, so the figures say how much work the RSUs do, not how busy the machine was. Rendering is not
+counted."""
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from services.monitor import frame_kind
+from sim.scenario import bundled_scenario_path, load_scenario
+from sim.world import World
+from toptag.fusion.presence import IntersectionPresence
+from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
+from toptag.units import NS_PER_S, s_from_ns
+
+FIX_FRESH_S = 1.0  # the bus filter's health is "degraded" after this long without a fix (FilterConfig)
+T0_NS = 1_800_000_000 * NS_PER_S  # the scenario's start (any fixed instant: the run repeats exactly)
+APPROACH_REPEAT_S = 1.0  # the bus agent's Approach period (services/bus/agent.py)
+GNSS_MAX_AGE_S = 5.0  # the agent's coarse position: its latest GNSS fix while younger than this
+
+
+@dataclass
+class RsuTally:
+    frames: int = 0  # frames while a bus was in session
+    cpu_ms: dict[str, list[float]] = field(default_factory=lambda: defaultdict(list))  # by kind of work
+    # wall ms of the pipeline's two steps (detection, with decoding; solving), by kind of work
+    steps_ms: dict[str, list[tuple[float, float]]] = field(default_factory=lambda: defaultdict(list))
+    in_view: int = 0  # (frame, bus) pairs with at least two tags of the bus fully in view
+    fixed_in_view: int = 0  # ... of which the RSU made an ok fix
+    fixes: int = 0
+    searches_ms: list[float] = field(default_factory=list)  # frames with an acquisition search
+    searches_in_vain: int = 0  # ... while none of the buses searched for had two tags in view
+
+    def figures(self, duration_s: float) -> dict:
+        every = [ms for v in self.cpu_ms.values() for ms in v]
+        return {"frames_in_session": self.frames, "cpu_s": round(sum(every) / 1e3, 3),
+                "cores": round(sum(every) / 1e3 / duration_s, 4),
+                "cpu_ms_p50": round(float(np.percentile(every, 50)), 3) if every else None,
+                "by_kind": {k: {"frames": len(v), "cpu_ms_mean": round(float(np.mean(v)), 3),
+                                "cpu_ms_p50": round(float(np.percentile(v, 50)), 3),
+                                "detect_ms_p50": round(float(np.percentile([d for d, _ in self.steps_ms[k]], 50)), 3),
+                                "solve_ms_p50": round(float(np.percentile([s for _, s in self.steps_ms[k]], 50)), 3)}
+                            for k, v in sorted(self.cpu_ms.items())},
+                "searches": len(self.searches_ms),
+                "search_cpu_ms_p50": round(float(np.percentile(self.searches_ms, 50)), 3) if self.searches_ms else None,
+                "searches_with_no_bus_in_view": self.searches_in_vain,
+                "fixes": self.fixes,
+                "fix_rate_in_view": round(self.fixed_in_view / self.in_view, 4) if self.in_view else None}
+
+
+def scenario_frames(world: World, duration_s: float, progress=None):
+    """(rsu index, capture tick, JPEG) of every RSU's frames in time order over duration_s."""
+    end = world.t0_ns + int(duration_s * NS_PER_S)
+    n = len(world.cameras)
+    ticks = sorted((world.frame_time(r, k), r) for r in range(n)
+                   for k in range(world.frame_index_from(r, end)))
+    for i, (t, r) in enumerate(ticks):
+        if progress is not None and i % 200 == 0:
+            progress(f"rendering frame {i}/{len(ticks)}")
+        jpeg, _ = world.capture(r, t)
+        yield r, t, jpeg
+
+
+def replay(world: World, frames, duration_s: float, settings: PipelineSettings | None = None) -> dict:
+    """Every RSU pipeline on `frames` (from scenario_frames), with sessions, coarse positions and hints
+    as the services would give them; figures per RSU and in all."""
+    cv2.setNumThreads(1)
+    pipelines = [RsuPipeline(cam, settings) for cam in world.cameras]
+    tallies = [RsuTally() for _ in pipelines]
+    presence = {b: IntersectionPresence(world.site) for b in world.bus_ids}
+    in_session: set[str] = set()
+    gnss: dict[str, tuple] = {}
+    next_approach: dict[str, int] = {}
+    last_fix: dict[str, int] = {}
+    covered = samples = 0
+    for r, t, jpeg in frames:
+        truth = world.truth_at(t)
+        for bus in world.bus_ids:
+            for g in world.gnss_between(bus, t - NS_PER_S, t):
+                gnss[bus] = (g.t_ns, g.x, g.y, g.sigma_m)
+            s = truth.get(bus)
+            events = presence[bus].update(s.x, s.y) if s is not None else (
+                [("leave", None)] if presence[bus].current is not None else [])
+            if s is None:
+                presence[bus].current = None
+            for event, _ in events:
+                if event == "enter":
+                    in_session.add(bus)
+                    next_approach[bus] = t
+                    for p in pipelines:
+                        p.add_vehicle(world.vehicle(bus))
+                else:
+                    in_session.discard(bus)
+                    for p in pipelines:
+                        p.remove_vehicle(bus)
+            if bus in in_session and t >= next_approach[bus]:
+                next_approach[bus] = t + int(APPROACH_REPEAT_S * NS_PER_S)
+                g = gnss.get(bus)
+                if g is not None and s_from_ns(t - g[0]) < GNSS_MAX_AGE_S:
+                    for p in pipelines:
+                        p.coarse_position(bus, *g)
+        if not in_session:
+            continue
+        for bus in in_session:
+            samples += 1
+            covered += bus in last_fix and s_from_ns(t - last_fix[bus]) <= FIX_FRESH_S
+        pipe, tally = pipelines[r], tallies[r]
+        c0 = time.process_time()
+        res = pipe.process(lambda: cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE), t)
+        ms = (time.process_time() - c0) * 1e3
+        tally.frames += 1
+        kind = frame_kind({b: v.mode for b, v in res.vehicles.items()})
+        tally.cpu_ms[kind].append(ms)
+        tally.steps_ms[kind].append((res.detect_ms, res.solve_ms))
+        visible = world.tags_in_view(world.cameras[r].id, t)
+        if res.acquired:
+            tally.searches_ms.append(ms)
+            sought = [b for b, v in res.vehicles.items() if v.mode in ("acquired", "searching")]
+            tally.searches_in_vain += not any(len(visible.get(b, [])) >= 2 for b in sought)
+        for bus, vr in res.vehicles.items():
+            seen = len(visible.get(bus, [])) >= 2
+            tally.in_view += seen
+            if vr.fix is not None:
+                tally.fixes += 1
+                tally.fixed_in_view += seen
+                last_fix[bus] = t
+                for o, p in enumerate(pipelines):
+                    if o != r:
+                        p.hint(bus, t, vr.fix.x, vr.fix.y, vr.fix.yaw, vr.fix.z)
+    per_rsu = {cam.id: tally.figures(duration_s) for cam, tally in zip(world.cameras, tallies)}
+    in_view = sum(t.in_view for t in tallies)
+    return {"duration_s": duration_s, "rsus": per_rsu,
+            "cores": round(sum(r["cores"] for r in per_rsu.values()), 4),
+            "searches": sum(r["searches"] for r in per_rsu.values()),
+            "searches_with_no_bus_in_view": sum(r["searches_with_no_bus_in_view"] for r in per_rsu.values()),
+            # What the bus's "ok" needs: a fix from some RSU in the last second, at every moment in session.
+            "fix_fresh_in_session": round(covered / samples, 4) if samples else None,
+            "fix_rate_in_view": round(sum(t.fixed_in_view for t in tallies) / in_view, 4) if in_view else None}
+
+
+def run_scenario(path: str | None = None, duration_s: float = 60.0, settings: PipelineSettings | None = None,
+                 progress=None) -> dict:
+    """Render the scenario's frames (not timed), then replay them through the RSU pipelines."""
+    cv2.setNumThreads(1)
+    world = World(load_scenario(path or bundled_scenario_path()))
+    world.warm_up()
+    world.start(T0_NS)
+    frames = list(scenario_frames(world, duration_s, progress))
+    world.start(T0_NS)  # the same sensor noise (GNSS) as if rendering and replay ran together
+    if progress is not None:
+        progress(f"replaying {len(frames)} frames through {len(world.cameras)} RSU pipelines ...")
+    return {"scenario": str(path or bundled_scenario_path()), "image_model": world.model.describe(),
+            **replay(world, frames, duration_s, settings)}

@@ -1,0 +1,196 @@
+"""Where an announced bus that this camera has not found can be, so that acquisition searches only
+there.
+
+A set of possible positions of the bus's centre on a grid of the roof plane around what the camera
+sees. It starts as "anywhere" and is cut to what is known of the bus (its own coarse position, another
+RSU's fix: each a disc that grows with its age at the bus's top speed); it grows at that speed as time
+passes; and it loses the positions that this camera has just searched in vain (every pixel a bus there
+could cover lay inside the searched part of the image). Beyond the grid the bus is possible unless a
+disc within the grid says otherwise; from there it can drive in.
+
+Acquisition then searches only the image tiles where a bus at a still possible position would appear,
+and nothing when none would: after one search of the whole view finds nothing, the next ones cover the
+strip along the edge of the view that a bus can have entered since (or, with a coarse position, the
+part of that strip near it), not the whole frame. A bus missed once (occluded, a bad frame) is searched
+for again where it was once the possible set has grown back over it: within a few frames at bus speed."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from toptag.camera import Camera
+from toptag.rsu.regions import Box
+
+CELL_M = 1.0  # grid spacing; every disc and footprint is widened by a cell's half diagonal
+TILES = (16, 12)  # the image is searched by tiles: this many across and down
+MAX_RANGE_M = 80.0  # no grid beyond this distance from the camera's nadir (tags there are sub-pixel)
+
+
+@dataclass(frozen=True)
+class ViewGrid:
+    """The roof-plane grid of one camera for one kind of vehicle: for each cell, the image tiles a
+    vehicle centred there can cover (any yaw, roof within +-dz)."""
+
+    x0: float
+    y0: float
+    nx: int
+    ny: int
+    in_view: np.ndarray  # (ny*nx,) bool: the vehicle's image footprint there overlaps the image
+    tiles: np.ndarray  # (ny*nx, 4) int: tile columns [tx0, tx1) and rows [ty0, ty1) of that footprint
+
+    @classmethod
+    def build(cls, camera: Camera, roof_z: float, radius_m: float, dz: float = 0.3, pad_px: float = 4.0,
+              cell_m: float = CELL_M, max_range_m: float = MAX_RANGE_M) -> "ViewGrid":
+        w, h = camera.width, camera.height
+        border = np.concatenate([
+            np.column_stack([np.linspace(0, w - 1, 64), np.zeros(64)]),
+            np.column_stack([np.linspace(0, w - 1, 64), np.full(64, h - 1.0)]),
+            np.column_stack([np.zeros(48), np.linspace(0, h - 1, 48)]),
+            np.column_stack([np.full(48, w - 1.0), np.linspace(0, h - 1, 48)])])
+        nadir = camera.center[:2]
+        seen = camera.backproject_to_plane(border, roof_z)[:, :2]
+        lo, hi = nadir - max_range_m, nadir + max_range_m
+        if np.all(np.isfinite(seen)):  # the horizon is not in view: the grid needs only the footprint
+            lo, hi = np.maximum(lo, seen.min(axis=0)), np.minimum(hi, seen.max(axis=0))
+        margin = radius_m + 2 * cell_m
+        lo, hi = lo - margin, hi + margin
+        nx, ny = (np.ceil((hi - lo) / cell_m).astype(int) + 1)
+        gx, gy = np.meshgrid(lo[0] + cell_m * np.arange(nx), lo[1] + cell_m * np.arange(ny))
+        centres = np.column_stack([gx.ravel(), gy.ravel()])
+        # A vehicle centred anywhere in the cell, at any yaw: a circle of its half diagonal plus the
+        # cell's half diagonal, at the lowest and highest roof.
+        r = radius_m + cell_m * np.sqrt(0.5)
+        ang = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+        ring = np.vstack([[0.0, 0.0], np.column_stack([r * np.cos(ang), r * np.sin(ang)])])  # and the centre
+        pts = (centres[:, None, None, :] + ring[None, None, :, :]).repeat(2, axis=1)  # (n, 2, 13, 2)
+        z = np.broadcast_to(np.array([roof_z - dz, roof_z + dz])[None, :, None, None], pts.shape[:3] + (1,))
+        world = np.concatenate([pts, z], axis=-1).reshape(-1, 3)
+        front = camera.to_camera(world)[:, 2] > 0.1
+        uv = np.full((world.shape[0], 2), np.nan)
+        uv[front] = camera.project(world[front])
+        uv = uv.reshape(len(centres), -1, 2)
+        all_front = front.reshape(len(centres), -1).all(axis=1)
+        seen = np.isfinite(uv)
+        u0, v0 = (np.where(seen, uv, np.inf).min(axis=1) - pad_px).T
+        u1, v1 = (np.where(seen, uv, -np.inf).max(axis=1) + pad_px).T
+        any_front = np.isfinite(u0)
+        # Part of the circle behind the camera: its image can reach any edge, so the whole frame.
+        partial = any_front & ~all_front
+        u0[partial], v0[partial], u1[partial], v1[partial] = 0, 0, w, h
+        inside = np.zeros(len(world), bool)
+        inside[front] = camera.in_image(uv.reshape(-1, 2)[front], margin=-pad_px)
+        in_view = partial | inside.reshape(len(centres), -1).any(axis=1)
+        tile_w, tile_h = w / TILES[0], h / TILES[1]
+        tiles = np.zeros((len(centres), 4), int)
+        tiles[in_view, 0] = np.clip(np.floor(u0[in_view] / tile_w), 0, TILES[0] - 1)
+        tiles[in_view, 1] = np.clip(np.ceil(u1[in_view] / tile_w), 1, TILES[0])
+        tiles[in_view, 2] = np.clip(np.floor(v0[in_view] / tile_h), 0, TILES[1] - 1)
+        tiles[in_view, 3] = np.clip(np.ceil(v1[in_view] / tile_h), 1, TILES[1])
+        return cls(float(lo[0]), float(lo[1]), int(nx), int(ny), in_view, tiles)
+
+    def disc(self, x: float, y: float, radius: float) -> np.ndarray:
+        """(ny, nx) bool: the cells whose centre may lie within radius of (x, y)."""
+        gx = self.x0 + CELL_M * np.arange(self.nx) - x
+        gy = self.y0 + CELL_M * np.arange(self.ny) - y
+        r = radius + CELL_M * np.sqrt(0.5)
+        return gy[:, None] ** 2 + gx[None, :] ** 2 <= r * r
+
+
+
+class Whereabouts:
+    """The possible positions of one unfound vehicle for one camera (see the module docstring)."""
+
+    def __init__(self, grid: ViewGrid, speed_mps: float):
+        self.grid, self.speed = grid, speed_mps
+        self.possible = np.ones((grid.ny, grid.nx), bool)
+        self.beyond = True  # may the vehicle be beyond the grid?
+        self.t_ns: int | None = None
+        self._growth_m = 0.0
+
+    def advance(self, t_ns: int) -> None:
+        """Let time pass to t_ns: every position reachable at the top speed becomes possible (also from
+        outside the grid). A clock that goes back: anywhere again."""
+        if self.t_ns is not None and t_ns < self.t_ns:
+            self.possible[:] = True
+            self.beyond = True
+            self._growth_m = 0.0
+        elif self.t_ns is not None:
+            self._growth_m += self.speed * (t_ns - self.t_ns) * 1e-9
+            k = int(self._growth_m // CELL_M)
+            if k > 0 and not self.possible.all():
+                kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+                grown = cv2.dilate(self.possible.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT,
+                                   borderValue=int(self.beyond))
+                self.possible = grown.astype(bool)
+                p = self.possible
+                self.beyond |= bool(p[0].any() or p[-1].any() or p[:, 0].any() or p[:, -1].any())
+            self._growth_m -= k * CELL_M
+        self.t_ns = t_ns
+
+    def limit(self, x: float, y: float, radius: float) -> None:
+        """The vehicle is within radius of (x, y). When that leaves no position of the grid although the
+        disc has some, what was believed is wrong (a coarse position beyond its sigma, a bus missed by
+        every search of the disc): the disc is taken as it is."""
+        disc = self.grid.disc(x, y, radius)
+        narrowed = self.possible & disc
+        self.possible = narrowed if narrowed.any() or not disc.any() else disc
+        g = self.grid
+        self.beyond &= not (x - radius > g.x0 and y - radius > g.y0 and x + radius < g.x0 + CELL_M * (g.nx - 1)
+                            and y + radius < g.y0 + CELL_M * (g.ny - 1))
+
+    def _candidates(self) -> np.ndarray:
+        return np.flatnonzero(self.possible.ravel() & self.grid.in_view)
+
+    @property
+    def in_view(self) -> bool:
+        """Could the vehicle show in the image at all?"""
+        return bool(self._candidates().size)
+
+    def tile_mask(self) -> np.ndarray:
+        """(rows, cols) bool: the image tiles a vehicle at a possible position could cover."""
+        t = self.grid.tiles[self._candidates()]
+        diff = np.zeros((TILES[1] + 1, TILES[0] + 1), int)
+        np.add.at(diff, (t[:, 2], t[:, 0]), 1)
+        np.add.at(diff, (t[:, 2], t[:, 1]), -1)
+        np.add.at(diff, (t[:, 3], t[:, 0]), -1)
+        np.add.at(diff, (t[:, 3], t[:, 1]), 1)
+        return diff.cumsum(axis=0).cumsum(axis=1)[:TILES[1], :TILES[0]] > 0
+
+    def searched(self, tiles: np.ndarray) -> None:
+        """The vehicle was not found in these image tiles: it is at none of the positions whose whole
+        image footprint lies inside them."""
+        s = np.zeros((TILES[1] + 1, TILES[0] + 1), int)
+        s[1:, 1:] = tiles.astype(int).cumsum(axis=0).cumsum(axis=1)
+        idx = self._candidates()
+        t = self.grid.tiles[idx]
+        covered = s[t[:, 3], t[:, 1]] - s[t[:, 2], t[:, 1]] - s[t[:, 3], t[:, 0]] + s[t[:, 2], t[:, 0]]
+        area = (t[:, 1] - t[:, 0]) * (t[:, 3] - t[:, 2])
+        flat = self.possible.ravel()  # a view: clears self.possible
+        flat[idx[covered == area]] = False
+
+
+def tile_boxes(width: int, height: int, tiles: np.ndarray) -> list[Box]:
+    """Disjoint pixel rectangles covering the marked tiles of a width x height image: runs of each tile
+    row, joined with the run below when they span the same columns."""
+    tw, th = width / TILES[0], height / TILES[1]
+
+    def box(tx0: int, ty0: int, tx1: int, ty1: int) -> Box:
+        return Box(int(np.floor(tx0 * tw)), int(np.floor(ty0 * th)),
+                   min(width, int(np.ceil(tx1 * tw))), min(height, int(np.ceil(ty1 * th))))
+
+    open_runs: dict[tuple[int, int], int] = {}  # (tx0, tx1) -> first row
+    out: list[Box] = []
+    for ty in range(tiles.shape[0] + 1):
+        runs = set()
+        if ty < tiles.shape[0]:
+            row = np.concatenate([[False], tiles[ty], [False]]).astype(int)
+            edges = np.flatnonzero(np.diff(row))
+            runs = {(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])}
+        for run in list(open_runs):
+            if run not in runs:
+                out.append(box(run[0], open_runs.pop(run), run[1], ty))
+        for run in runs:
+            open_runs.setdefault(run, ty)
+    return out
