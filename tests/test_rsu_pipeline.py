@@ -327,3 +327,30 @@ def test_bench_rsu_scenario_replays_the_demos_rsus_offline(capsys):
         assert sum(k["frames"] for k in r["by_kind"].values()) == r["frames_in_session"]
     assert sum(r["fixes"] for r in out["rsus"].values()) > 20
     assert out["fix_rate_in_view"] >= 0.8 and 0 < out["fix_fresh_in_session"] <= 1
+
+
+def test_a_tracked_buses_fix_is_final_before_the_frames_search_runs(bus_pass):
+    """on_vehicle hands each bus's result over as soon as it is final: a tracked bus's fix before the
+    search for another, unfound bus in the same frame (so the RSU publishes it without waiting)."""
+    camera, bus, frames = bus_pass
+    other = bundled_vehicle("bus_second")
+    p = RsuPipeline(camera, PipelineSettings(acquire_period_s=0.0))  # a search on every frame
+    p.add_vehicle(bus)
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    for i in shown[:6]:
+        p.process(frames[i][1], frames[i][0])
+    assert p.tracks[bus.id].found
+    p.add_vehicle(other)  # announced, nowhere known: searched for on this frame
+    events = []
+    search = p._acquisition_jobs
+
+    def spy(*a, **k):
+        events.append("search")
+        return search(*a, **k)
+
+    p._acquisition_jobs = spy
+    t_ns, img, _, _ = frames[shown[6]]
+    res = p.process(img, t_ns, on_vehicle=lambda vr: events.append((vr.vehicle_id, vr.mode, vr.fix is not None)))
+    assert res.acquired
+    assert events == [(bus.id, "tracked", True), "search", (other.id, "searching", False)]
+    assert list(res.vehicles) == [bus.id, other.id]

@@ -235,23 +235,25 @@ class RsuService:
             return gray
 
         t0 = time.perf_counter_ns()
+        clock = clock or clock_to_message(self.clock.current())  # the clock of the capture stamp
+        published = []
+
+        def publish(vr) -> None:
+            """A bus's fix goes out as soon as the pipeline has it (a tracked bus's before any search)."""
+            if vr.fix is not None and vr.vehicle_id in self._fix_pubs:
+                self._fix_pubs[vr.vehicle_id].put(fix_to_message(
+                    vr.fix, vr.vehicle_id, self.intersection, time.time_ns(), time.perf_counter_ns() - t0, clock))
+                published.append(vr.vehicle_id)
+
         try:
-            result = self.pipeline.process(checked, capture_time_ns, seq)
+            result = self.pipeline.process(checked, capture_time_ns, seq, on_vehicle=publish)
         except ProtocolError as e:
             self._bad_frame(str(e), e.reason)
             return
         processing_ns = time.perf_counter_ns() - t0
         c.detect_ns.append(processing_ns)
         c.frames_processed += 1
-        clock = clock or clock_to_message(self.clock.current())  # the clock of the capture stamp
-        published = 0
-        for bus, vr in result.vehicles.items():
-            if vr.fix is None or bus not in self._fix_pubs:
-                continue
-            self._fix_pubs[bus].put(fix_to_message(vr.fix, bus, self.intersection, time.time_ns(), processing_ns,
-                                                   clock))
-            published += 1
-        c.fixes_published += published
+        c.fixes_published += len(published)
         c.frames_with_fix += bool(published)
         self._detections_pub.put(self.detections(capture_time_ns, seq, result, processing_ns))
 

@@ -226,10 +226,13 @@ class RsuPipeline:
         return self._pools[families]
 
     # ---- per frame ----------------------------------------------------------------------------
-    def process(self, gray: np.ndarray | Callable[[], np.ndarray], t_ns: int, seq: int | None = None) -> FrameResult:
+    def process(self, gray: np.ndarray | Callable[[], np.ndarray], t_ns: int, seq: int | None = None,
+                on_vehicle: Callable[[VehicleResult], None] | None = None) -> FrameResult:
         """Detect and solve every announced vehicle in the frame captured at t_ns (frame number seq).
         gray: the image, or a function that decodes it, called only when some region is to be searched
-        (a frame whose buses are all out of view, or whose search is not due, is never decoded)."""
+        (a frame whose buses are all out of view, or whose search is not due, is never decoded).
+        on_vehicle: called with each vehicle's result as soon as it is final; the tracked and hinted
+        buses' come before the frame's acquisition search runs, so their fixes never wait for it."""
         result = FrameResult(t_ns)
         if not self.vehicles:
             return result
@@ -241,7 +244,23 @@ class RsuPipeline:
         where = {vid: self._whereabouts_at(vid, t_ns) for vid in rest} if self._bounded() else {}
         away = [vid for vid in rest if vid in where and not where[vid].in_view]
         unfound = [vid for vid in rest if vid not in away]
+        decoded: list[np.ndarray] = []
 
+        def image() -> np.ndarray:
+            if not decoded:
+                g = gray() if callable(gray) else gray
+                if g.shape != (self.camera.height, self.camera.width):
+                    raise ValueError(f"frame is {g.shape[1]}x{g.shape[0]}, camera {self.camera.id} is "
+                                     f"{self.camera.width}x{self.camera.height}")
+                decoded.append(g)
+            return decoded[0]
+
+        def done(vr: VehicleResult) -> None:
+            result.vehicles[vr.vehicle_id] = vr
+            if on_vehicle is not None:
+                on_vehicle(vr)
+
+        # Tracked and hinted buses: crops around where each must be.
         jobs: list[DetectJob] = []
         regions_of: dict[str, int] = {}
         for vid in tracked + hinted:
@@ -250,54 +269,62 @@ class RsuPipeline:
             regions_of[vid] = len(vjobs)
             jobs += vjobs
         jobs = _merge_jobs(jobs)
+        raw = [d for found in (pool.run(image(), jobs) if jobs else []) for d in found]
+        result.pixels_searched = sum(j.box.area for j in jobs)
+        t1 = time.perf_counter()
+        result.detect_ms = (t1 - t0) * 1e3
+        observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
+        for vid in tracked + hinted:
+            mode = "tracked" if vid in tracked else ("hinted" if regions_of[vid] else "out_of_view")
+            done(self._conclude(vid, observed.get(vid, []), mode, t_ns, seq, regions_of[vid]))
+        t2 = time.perf_counter()
+        result.solve_ms = (t2 - t1) * 1e3
+
+        # The others: searched for where they can be, if a search is due.
         result.acquired = bool(unfound) and self._acquisition_due(t_ns, bool(tracked))
         searched_tiles = None
         if result.acquired:
             self._last_acquire_ns = t_ns
             if where:
                 searched_tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound])
-            jobs += self._acquisition_jobs([self.vehicles[v] for v in unfound], searched_tiles)
-
-        if jobs:
-            gray = gray() if callable(gray) else gray
-            if gray.shape != (self.camera.height, self.camera.width):
-                raise ValueError(f"frame is {gray.shape[1]}x{gray.shape[0]}, camera {self.camera.id} is "
-                                 f"{self.camera.width}x{self.camera.height}")
-        per_job = pool.run(gray, jobs) if jobs else []
-        raw = [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
-        wanted = {(self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids}
-        coarse = [d for job, found in zip(jobs, per_job) if job.decimate != 1.0 for d in found
-                  if (d.family, d.tag_id) in wanted]
-        if coarse:
-            raw += self._confirm_full_resolution(gray, coarse, pool)
-        result.pixels_searched = sum(j.box.area for j in jobs)
-        result.detect_ms = (time.perf_counter() - t0) * 1e3
-
-        t1 = time.perf_counter()
-        observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
-        for vid, vehicle in self.vehicles.items():
-            obs = observed.get(vid, [])
-            was_tracked = vid in tracked
-            if vid in hinted or vid in away:
-                mode = "hinted" if regions_of.get(vid) else "out_of_view"
-            else:
-                mode = "tracked" if was_tracked else ("acquired" if result.acquired else "waiting")
-            sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None
-            if sol is not None:
-                sol = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
-            if sol is not None and sol.ok:
-                self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
-                self._whereabouts.pop(vid, None)
-            elif was_tracked:
-                self._lost_track(vid)
-            elif searched_tiles is not None and vid in unfound and not obs:
+            jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], searched_tiles)
+            per_job = pool.run(image(), jobs) if jobs else []
+            raw += [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
+            wanted = {(self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids}
+            coarse = [d for job, found in zip(jobs, per_job) if job.decimate != 1.0 for d in found
+                      if (d.family, d.tag_id) in wanted]
+            if coarse:
+                raw += self._confirm_full_resolution(image(), coarse, pool)
+            result.pixels_searched += sum(j.box.area for j in jobs)
+            observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
+        t3 = time.perf_counter()
+        result.detect_ms += (t3 - t2) * 1e3
+        for vid in away + unfound:
+            mode = "out_of_view" if vid in away else ("acquired" if result.acquired else "waiting")
+            obs = observed.get(vid, [])  # an "away" bus's tags may still show in another's crop
+            vr = self._conclude(vid, obs, mode, t_ns, seq, 0)
+            if searched_tiles is not None and vid in unfound and not obs:
                 where[vid].searched(searched_tiles)
-            if sol is None and mode not in ("waiting", "out_of_view"):
-                mode = "searching"
-            fix = Fix.from_solution(sol, t_ns, self.camera.id, seq) if sol is not None and sol.ok else None
-            result.vehicles[vid] = VehicleResult(vid, sol, mode, regions_of.get(vid, 0), obs, fix)
-        result.solve_ms = (time.perf_counter() - t1) * 1e3
+            done(vr)
+        result.solve_ms += (time.perf_counter() - t3) * 1e3
+        result.vehicles = {vid: result.vehicles[vid] for vid in self.vehicles}
         return result
+
+    def _conclude(self, vid: str, obs: list, mode: str, t_ns: int, seq: int | None, regions: int) -> VehicleResult:
+        """Solve one vehicle from its observations in this frame and update its track."""
+        vehicle = self.vehicles[vid]
+        sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None
+        if sol is not None:
+            sol = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
+        if sol is not None and sol.ok:
+            self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
+            self._whereabouts.pop(vid, None)
+        elif mode == "tracked":
+            self._lost_track(vid)
+        if sol is None and mode not in ("waiting", "out_of_view"):
+            mode = "searching"
+        fix = Fix.from_solution(sol, t_ns, self.camera.id, seq) if sol is not None and sol.ok else None
+        return VehicleResult(vid, sol, mode, regions, obs, fix)
 
     def _bounded(self) -> bool:
         """Is acquisition limited to where the buses can be? (Not in the search-every-frame mode.)"""
