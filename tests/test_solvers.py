@@ -674,3 +674,65 @@ def test_a_lone_tag_whose_mirrored_pose_fits_is_flagged_and_its_covariance_cover
     assert flagged >= 3
     cov = covering_covariance(np.eye(3) * 1e-4, np.array([0.0, 0.0, math.pi - 0.01]), np.array([0.1, 0.0, -math.pi + 0.01]))
     assert math.isclose(cov[0, 0], 1e-4 + 0.01) and math.isclose(cov[2, 2], 1e-4 + 0.02 ** 2, rel_tol=1e-6)
+
+
+def test_fits_solved_together_equal_fits_solved_alone():
+    """The outlier test's subset fits are solved as one batch (SubsetFits.prepare): each comes out as it
+    would alone, including a garbled tag's, whose fit needs more steps than the others'."""
+    from toptag.solvers.level import SubsetFits
+    from toptag.solvers.model import build_corners
+
+    rng = np.random.default_rng(31)
+    vehicle = bundled_vehicle("bus_triple")
+    obs = observe_edges(vehicle, at_distance(11.0, yaw=0.7), cameras=(SW, SE), rng=rng)
+    obs[1] = garble(obs[1], 3, np.array([2.5, -1.5]))
+    c = build_corners(vehicle, obs)
+    subsets = [(k,) for k in range(len(c.units))] + [tuple(u for u in range(len(c.units)) if u != k)
+                                                       for k in range(len(c.units))]
+    assert len(subsets) >= 6
+    together = SubsetFits(c, vehicle.height, 0.05, TURN_RATIO, 0.1)
+    together.prepare(subsets)
+    for key in subsets:
+        alone = SubsetFits(c, vehicle.height, 0.05, TURN_RATIO, 0.1)
+        a, b = together.get(key), alone.get(key)
+        assert a.converged and b.converged, key
+        assert np.allclose(a.p, b.p, rtol=0, atol=1e-9), key
+        assert a.dof == pytest.approx(b.dof, abs=1e-9)
+        assert np.allclose(a.r_white, b.r_white, atol=1e-7) and np.allclose(a.all_J_white, b.all_J_white, atol=1e-7)
+
+
+def test_a_two_tag_solve_evaluates_its_model_a_few_times(monkeypatch):
+    """No repeated work per frame: a two-tag level solve (the outlier test's leave-one-out fits, which are
+    also the misfit weights' own fits, then the joint fit from their combined pose) evaluates the level
+    model a handful of times, each evaluation one matrix product for all of its poses; the main branch
+    before issue 14's batching evaluated it ~19 times and the 6-DOF model 4 more."""
+    import toptag.solvers.hopt as hopt_module
+    import toptag.solvers.level as level_module
+    import toptag.solvers.model as model
+    import toptag.solvers.robust as robust_module
+
+    calls = {"level": 0, "6-dof": 0}
+    level_batch, full = model.evaluate_level_batch, model.evaluate
+
+    def counted_level(*args):
+        calls["level"] += 1
+        return level_batch(*args)
+
+    def counted_full(*args):
+        calls["6-dof"] += 1
+        return full(*args)
+
+    for module in (model, level_module, hopt_module, robust_module):
+        for name, counted in (("evaluate_level_batch", counted_level), ("evaluate", counted_full)):
+            if hasattr(module, name):
+                monkeypatch.setattr(module, name, counted)
+    rng = np.random.default_rng(32)
+    vehicle = bundled_vehicle("bus_double")
+    for i in range(20):
+        obs = observe_edges(vehicle, at_distance(rng.uniform(8, 20), rng.uniform(0.5, 1.1), rng.uniform(-3, 3)),
+                            rng=rng)
+        assert len(obs) == 2
+        for method, most in (("level", 9), ("hopt", 8)):
+            calls.update({"level": 0, "6-dof": 0})
+            assert solve(vehicle, obs, method, weighting="principled").ok
+            assert calls["level"] <= most and calls["6-dof"] == 0, (i, method, calls)

@@ -1,6 +1,7 @@
 """`solve`: one vehicle's tag observations (any tags, any cameras) to a checked PoseSolution."""
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -25,6 +26,7 @@ METHODS = ("bas", "hopt", "sopt", "level")
 _ALIASES = {"soptlevel": "level", "levelroof": "level"}
 
 
+@functools.lru_cache(maxsize=64)
 def canonical_method(method: str) -> str:
     """'Bas.', 'H.Opt.', 'h-opt', 'SOPT', 'level', 'sopt_level', 'S.Opt. level' ... to
     'bas' | 'hopt' | 'sopt' | 'level'."""

@@ -11,14 +11,14 @@ from toptag.solvers.common import (
     rms,
     safe_inverse,
 )
-from toptag.solvers.lm import levenberg_marquardt
+from toptag.solvers.lm import levenberg_marquardt_batch
 from toptag.solvers.model import (
     KNOWN,
     Calibration,
     Corners,
     calib_columns,
     calib_residual_rms,
-    evaluate_level,
+    evaluate_level_batch,
     planar_theta,
 )
 
@@ -64,15 +64,18 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
     carried through dtheta/dh: the plane is fixed at h, so an error in h moves the answer; and likewise
     the cameras' calibration uncertainty when given."""
 
-    def fun(p):
-        r_px, J, in_front = evaluate_level(c, p[0], p[1], p[2], h)
-        if not in_front:
-            return np.full(2 * c.n, np.inf), J[:, PLANAR]
-        return r_px, J[:, PLANAR]
+    def normal(ps):
+        r_px, J4, front = evaluate_level_batch(c, np.column_stack([ps, np.full(len(ps), h)]))
+        J = J4[..., PLANAR]
+        Jt = J.transpose(0, 2, 1)
+        cost = np.where(front.all(axis=1), (r_px * r_px).sum(axis=1), np.inf)
+        return cost, Jt @ J, (Jt @ r_px[..., None])[..., 0], (r_px, J4, front)
 
-    res = levenberg_marquardt(fun, np.asarray(start, dtype=float))
-    theta = planar_theta(res.theta[0], res.theta[1], res.theta[2], h)
-    r_px, J4, in_front = evaluate_level(c, res.theta[0], res.theta[1], res.theta[2], h)
+    res = levenberg_marquardt_batch(normal, np.asarray(start, dtype=float)[None])
+    p = res.theta[0]
+    converged = bool(res.converged[0])
+    r_px, J4, in_front = res.extra[0][0], res.extra[1][0], bool(res.extra[2][0].all())
+    theta = planar_theta(p[0], p[1], p[2], h)
     J = J4[:, PLANAR]
     N_inv = safe_inverse(J.T @ J)
     sigma = sigma_px if sigma_px is not None else estimate_sigma(float(r_px @ r_px), 2 * c.n - 3)
@@ -90,8 +93,8 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
     note = None
     if not in_front:
         note = "pose puts the tag behind the camera"
-    elif not res.converged:
+    elif not converged:
         note = "H.Opt. did not converge"
-    return Fit("hopt", theta, cov, rms(r_px), sigma, c, converged=res.converged and in_front,
+    return Fit("hopt", theta, cov, rms(r_px), sigma, c, converged=converged and in_front,
                dof=2 * c.n - 3, fit_rms_px=rms(r_px), height_rms_px=height_rms, calib_rms_px=calib_rms,
                note=note)

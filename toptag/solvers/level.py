@@ -194,6 +194,7 @@ class LevelProblem:
         self.prior = prior
         self.prior_rows = np.flatnonzero(prior > 0)
         self._memo = None
+        self._evaluated = None  # (p's bytes, pixels(p)) of the last minimise's result
         if self.n_c:
             cam = camera_index(c)
             self._cam_rows = [cam == k for k in range(len(self.cams))]
@@ -227,6 +228,12 @@ class LevelProblem:
 
     def pixels(self, p):
         """(raw pixel residuals (2N,), their Jacobian (2N, n_p), every corner in front of its camera)."""
+        p = np.asarray(p, dtype=float)
+        if self._evaluated is not None and self._evaluated[0] == p.tobytes():
+            return self._evaluated[1]
+        return self._pixels(p)
+
+    def _pixels(self, p):
         if not self.n_c:  # the RSU's case: a level roof, cameras as calibrated
             r_px, J, ok = evaluate_level(self.c, p[0], p[1], p[2], p[3] if self.zfree else self.h)
             return r_px, J[:, :self.n_pose], ok
@@ -277,14 +284,18 @@ class LevelProblem:
 
         def normal(ps):
             p = ps[0]
-            r_px, J_px, ok = self.pixels(p)
+            r_px, J_px, ok = self._pixels(p)
             r, J = A @ r_px, A @ J_px
             dp = prior2 * (p - offset)
             cost = float(r @ r + dp @ (p - offset)) if ok else math.inf
-            return np.array([cost]), (J.T @ J + np.diag(prior2))[None], (J.T @ r + dp)[None]
+            return (np.array([cost]), (J.T @ J + np.diag(prior2))[None], (J.T @ r + dp)[None],
+                    (r_px[None], J_px[None], np.array([ok])))
 
         res = levenberg_marquardt_batch(normal, np.asarray(p0, dtype=float)[None])
-        return LmResult(res.theta[0], bool(res.converged[0]))
+        r_px, J_px, ok = (e[0] for e in res.extra)
+        theta = res.theta[0]
+        self._evaluated = (theta.tobytes(), (r_px, J_px, bool(ok)))  # the statistics at theta reuse it
+        return LmResult(theta, bool(res.converged[0]), r_px, J_px)
 
     def _normal(self, p, sigma: float):
         """At p weighted with sigma: (r_px, J_px, in front, Jw, d2, JtD2J, H_inv, dof, weighted whitened
@@ -451,8 +462,9 @@ class SubsetFits:
 
         def fun(p):
             r_px, J_px, front = evaluate_level_batch(c, _level_poses(p, h))
-            r = (r_px @ T.T) * row_w
-            J = (T @ J_px[..., :n_p]) * row_w[..., None]
+            r_all, J_all = r_px @ T.T, T @ J_px  # whitened, every corner
+            r = r_all * row_w
+            J = J_all[..., :n_p] * row_w[..., None]
             Jt = J.transpose(0, 2, 1)
             cost, A, g = (r * r).sum(axis=1), Jt @ J, (Jt @ r[..., None])[..., 0]
             if zfree:  # the roof-height prior's residual (z - h) / sigma_h
@@ -461,31 +473,31 @@ class SubsetFits:
                 A[:, 3, 3] += 1.0 / self.sigma_h ** 2
                 g[:, 3] += dz
             cost[(~front & corner_mask).any(axis=1)] = np.inf
-            return cost, A, g
+            return cost, A, g, (r_all, J_all, front)
 
         res = levenberg_marquardt_batch(fun, p0)
-        r_px, J_px, front = evaluate_level_batch(c, _level_poses(res.theta, h))
-        r_all = r_px @ T.T
-        J_all = T @ J_px
+        r_all, J_all, front = res.extra
         Jw = J_all[..., :n_p] * np.repeat(corner_mask, 2, axis=1)[..., None]
         JtJ = np.swapaxes(Jw, 1, 2) @ Jw
         H = JtJ / s_w ** 2
         if zfree:
             H[:, 3, 3] += 1.0 / self.sigma_h ** 2
         H_inv = safe_inverse(H)
-        trace = np.einsum("bij,bji->b", H_inv, JtJ)
+        trace = np.einsum("bij,bji->b", H_inv, JtJ).tolist()
+        usable = (ok_start & np.isfinite(res.theta).all(axis=1)).tolist()
+        determined = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
+        converged = (res.converged & (front | ~corner_mask).all(axis=1)).tolist()
+        thetas = np.zeros((len(keys), 6))
+        thetas[:, [IX, IY, IYAW, IZ]] = _level_poses(res.theta, h)
         out = []
         for b, key in enumerate(keys):
-            if not ok_start[b] or not np.all(np.isfinite(res.theta[b])):
+            if not usable[b]:
                 out.append(None)
                 continue
             rows = self.rows(key)
-            dof = len(rows) - float(trace[b]) / s_w ** 2 if np.all(np.isfinite(H_inv[b])) else 0.0
-            p = res.theta[b]
-            theta = planar_theta(p[0], p[1], p[2], p[3] if zfree else h)
-            out.append(SubsetFit(key, c, p, theta, r_all[b, rows], J_all[b][rows][:, :n_p], dof,
-                                 bool(res.converged[b] and np.all(front[b][corner_mask[b]])),
-                                 r_all[b], J_all[b], front[b], H[b]))
+            dof = len(rows) - trace[b] / s_w ** 2 if determined[b] else 0.0
+            out.append(SubsetFit(key, c, res.theta[b], thetas[b], r_all[b, rows], J_all[b, rows, :n_p], dof,
+                                 converged[b], r_all[b], J_all[b], front[b], H[b]))
         return out
 
     def _fit_calibrated(self, k: int, calib: Calibration) -> SubsetFit | None:

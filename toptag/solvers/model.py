@@ -96,12 +96,18 @@ class Corners:
         return centre, d
 
     def backprojected(self, h: float) -> np.ndarray:
-        """Observed corners back-projected onto the world plane z = h (N,3), NaN where the ray misses."""
+        """Observed corners back-projected onto the world plane z = h (N,3), NaN where the ray misses
+        (the last plane asked is kept: a solve asks for the roof's several times; never modify it)."""
+        last = self.__dict__.get("_backprojected")
+        if last is not None and last[0] == h:
+            return last[1]
         centre, d = self.rays
         dz = d[:, 2]
         s = (h - centre[:, 2]) / np.where(dz != 0.0, dz, np.nan)
         s = np.where(s > 0, s, np.nan)
-        return centre + s[:, None] * d
+        W = centre + s[:, None] * d
+        self.__dict__["_backprojected"] = (h, W)
+        return W
 
     @property
     def tag_ids(self) -> list[int]:

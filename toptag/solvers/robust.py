@@ -172,13 +172,18 @@ def _loo_statistics(c: Corners, fits: SubsetFits, keep: list[int], sigma_px: flo
             Gc = Jc_k - Jk[j] @ (H_inv[j] @ (G[j].T @ Jc_rest) / s2[j])
             S[j] += (Gc * np.tile(calib.sigmas ** 2, len(cam_ids))) @ Gc.T
     finite = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
+    try:
+        d = np.einsum("ki,ki->k", e, np.linalg.solve(S, e[..., None])[..., 0]).tolist()
+    except np.linalg.LinAlgError:  # one singular S: each on its own
+        d = [math.nan] * len(items)
+        for j in range(len(items)):
+            try:
+                d[j] = float(e[j] @ np.linalg.solve(S[j], e[j]))
+            except np.linalg.LinAlgError:
+                pass
     for j, (i, _, _, _) in enumerate(items):
-        if not finite[j]:
-            continue
-        try:
-            out[i] = (float(e[j] @ np.linalg.solve(S[j], e[j])), thr[j])
-        except np.linalg.LinAlgError:
-            pass
+        if finite[j] and not math.isnan(d[j]):
+            out[i] = (d[j], thr[j])
     return out
 
 
