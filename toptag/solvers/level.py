@@ -398,7 +398,8 @@ class SubsetFits:
         self.T = block_diagonal(self.blocks)
         self._fits: dict[tuple, SubsetFit | None] = {}
         self._whiteners: dict[tuple[int, ...], np.ndarray] = {}
-        self._rows: dict[tuple[int, ...], np.ndarray] = {}
+        corners = np.argsort(c.unit_of, kind="stable").reshape(len(c.units), 4)  # each unit's 4 corners
+        self._unit_rows = (2 * corners[..., None] + np.array([0, 1])).reshape(len(c.units), 8)
         self._whiteners[tuple(range(len(c.units)))] = self.T
 
     def whitener(self, units) -> np.ndarray:
@@ -408,11 +409,8 @@ class SubsetFits:
         return self._whiteners[key]
 
     def rows(self, units) -> np.ndarray:
-        """Indices of the units' residual rows (x and y of each corner) within c's 2N, in c's order."""
-        units = tuple(int(u) for u in units)
-        if units not in self._rows:
-            self._rows[units] = np.flatnonzero(np.repeat(np.isin(self.c.unit_of, units), 2))
-        return self._rows[units]
+        """Indices of the units' residual rows (x and y of each of their corners) within c's 2N."""
+        return self._unit_rows[list(units)].ravel()
 
     def get(self, units) -> SubsetFit | None:
         key = tuple(sorted(int(u) for u in units))

@@ -105,12 +105,18 @@ def levenberg_marquardt_batch(fun: NormalFn, theta0, max_iter: int = 60, step_to
         trial = theta + step
         cost_new_v, A_new, g_new, extra_new = fun(trial)
         cost_new = cost_new_v.tolist()
-        for b in tried:
-            c_new, c_old = cost_new[b], cost[b]
-            if c_new <= c_old:  # False for a non-finite cost
-                theta[b], A[b], g[b], cost[b] = trial[b], A_new[b], g_new[b], c_new
+        better = [b for b in tried if cost_new[b] <= cost[b]]  # False for a non-finite cost
+        if len(better) == n_b:  # every problem moves: take the new arrays whole
+            theta, A, g, extra = trial, A_new.copy(), g_new.copy(), tuple(e.copy() for e in extra_new)
+        else:
+            for b in better:
+                theta[b], A[b], g[b] = trial[b], A_new[b], g_new[b]
                 for e, e_new in zip(extra, extra_new):
                     e[b] = e_new[b]
+        for b in tried:
+            c_new, c_old = cost_new[b], cost[b]
+            if c_new <= c_old:
+                cost[b] = c_new
                 lam[b] = max(lam[b] * 0.1, 1e-12)
                 if small[b] or c_old - c_new <= COST_RTOL * c_old or c_new == 0.0:
                     converged[b], active[b] = True, False
