@@ -550,25 +550,23 @@ def misfit_weights(fits: SubsetFits, units: list[int], floor_w: float,
     freedom each) differ by 3× one time in ten; a garbled tag's is (measured) 15–2000× the best."""
     if not calib.rot_sigma > 0:
         fits.prepare([(k,) for k in units])
-    own, ss, dof = [], [], []
+    own, ss, dof = [], [], []  # a few floats per unit: plain Python
     for k in units:
         f = fits.own(k, calib)
         if f is None or not f.converged:
             own.append(math.nan)
             continue
-        own.append(math.sqrt(float(np.mean(f.r_white ** 2))))
-        ss.append(float(f.r_white @ f.r_white))
+        ss_k = float(f.r_white @ f.r_white)
+        own.append(math.sqrt(ss_k / len(f.r_white)))
+        ss.append(ss_k)
         dof.append(max(f.dof, 0.0))
-    own = np.array(own)
-    good = np.isfinite(own)
-    if not good.any():
-        return np.ones(len(units)), None, own
-    ref = max(float(own[good].min()), floor_w)
-    excess = np.where(good, np.maximum(own / (MISFIT_FACTOR * ref), 1.0), 1.0)
-    w = 1.0 / excess ** MISFIT_POWER
-    w2 = w[good] ** 2  # as the weighted fit counts them
-    pooled = math.sqrt(float(np.dot(w2, ss)) / max(float(np.dot(w2, dof)), 1e-9))
-    return w, max(pooled, floor_w), own / ref
+    if not ss:
+        return np.ones(len(units)), None, np.array(own)
+    ref = max(min(r for r in own if not math.isnan(r)), floor_w)
+    w = [1.0 if math.isnan(r) else 1.0 / max(r / (MISFIT_FACTOR * ref), 1.0) ** MISFIT_POWER for r in own]
+    w2 = [wk * wk for wk, r in zip(w, own) if not math.isnan(r)]  # as the weighted fit counts them
+    pooled = math.sqrt(sum(a * b for a, b in zip(w2, ss)) / max(sum(a * b for a, b in zip(w2, dof)), 1e-9))
+    return np.array(w), max(pooled, floor_w), np.array(own) / ref
 
 
 def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | None = None,
