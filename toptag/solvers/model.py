@@ -275,6 +275,9 @@ def evaluate_level(c: Corners, x: float, y: float, yaw: float, z: float) -> tupl
     return r[0], J[0], bool(front[0].all())
 
 
+_QUARTER_TURN = np.array([0.0, math.pi / 2.0])
+
+
 def evaluate_level_batch(c: Corners, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`evaluate_level` at B level poses P (B, 4) = (x, y, yaw, z) at once: pixel residuals (B, 2N), their
     Jacobians (B, 2N, 4) and whether each corner is in front of its camera (B, N).
@@ -283,11 +286,12 @@ def evaluate_level_batch(c: Corners, P: np.ndarray) -> tuple[np.ndarray, np.ndar
     (Corners.level_projection), so one matrix product gives every corner's pixel and its yaw derivative."""
     P = np.asarray(P, dtype=float)
     n_b = len(P)
-    cy, sy = np.cos(P[:, 2]), np.sin(P[:, 2])
+    # Column 0: (x, y, z, cos, sin, 1); column 1, its yaw derivative: (0, 0, 0, -sin, cos, 0).
     V = np.zeros((n_b, 6, 2))
-    V[:, 0, 0], V[:, 1, 0], V[:, 2, 0] = P[:, 0], P[:, 1], P[:, 3]
-    V[:, 3, 0], V[:, 4, 0], V[:, 5, 0] = cy, sy, 1.0
-    V[:, 3, 1], V[:, 4, 1] = -sy, cy
+    V[:, :3, 0] = P[:, [0, 1, 3]]
+    angle = P[:, 2:3] + _QUARTER_TURN
+    V[:, 3, :], V[:, 4, :] = np.cos(angle), np.sin(angle)  # (cos, -sin), (sin, cos)
+    V[:, 5, 0] = 1.0
     Q = (c.level_projection @ V).reshape(n_b, c.n, 3, 2)  # homogeneous pixels and their yaw derivative
     dq = np.repeat(c.level_jacobian[None], n_b, axis=0)  # (B, N, 3, 4): d(q)/d(x, y, yaw, z)
     dq[..., 2] = Q[..., 1]
