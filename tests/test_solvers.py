@@ -698,7 +698,8 @@ def test_fits_solved_together_equal_fits_solved_alone():
         assert a.converged and b.converged, key
         assert np.allclose(a.p, b.p, rtol=0, atol=1e-9), key
         assert a.dof == pytest.approx(b.dof, abs=1e-9)
-        assert np.allclose(a.r_white, b.r_white, atol=1e-7) and np.allclose(a.all_J_white, b.all_J_white, atol=1e-7)
+        assert np.allclose(a.r_white, b.r_white, atol=1e-7)
+        assert np.allclose(a.all_J_white, b.all_J_white, atol=1e-7)
 
 
 def test_a_two_tag_solve_evaluates_its_model_a_few_times(monkeypatch):

@@ -140,11 +140,13 @@ def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
     if not turn_ratio:
         return np.broadcast_to(np.eye(8), (n_tags, 8, 8)).copy()
     u = q[:, [1, 2, 3, 0]] - q  # edge a: corner a -> a+1
-    u = u / np.linalg.norm(u, axis=2, keepdims=True)  # a degenerate quad gives NaN: solve() refuses it
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = u / np.linalg.norm(u, axis=2, keepdims=True)
     # Edge a's offset (row 2a) is the mean of its two corners' moves along its normal (corners a and
     # a+1, columns 2a.. and 2(a+1)..); its turn (row 2a+1) their difference, over turn_ratio.
+    scale = _EDGE_SIGN / 2.0 * np.where(_EDGE_ROWS % 2, 1.0 / turn_ratio, 1.0)
     B = np.zeros((n_tags, 8, 8))
-    B[:, _EDGE_ROWS, _EDGE_COLS] = u[:, _EDGE_OF, _NORMAL_AXIS] * (_EDGE_SIGN / 2.0 * np.where(_EDGE_ROWS % 2, 1.0 / turn_ratio, 1.0))
+    B[:, _EDGE_ROWS, _EDGE_COLS] = u[:, _EDGE_OF, _NORMAL_AXIS] * scale
     if TAG_RATIO:
         # Offsets o with covariance s²(I + r² 11ᵀ): whitened by I − (1 − 1/sqrt(1 + 4r²))·11ᵀ/4.
         k = 1.0 - 1.0 / math.sqrt(1.0 + 4.0 * TAG_RATIO ** 2)
@@ -298,7 +300,7 @@ class LevelProblem:
         return LmResult(theta, bool(res.converged[0]), r_px, J_px)
 
     def _normal(self, p, sigma: float):
-        """At p weighted with sigma: (r_px, J_px, in front, Jw, d2, JtD2J, H_inv, dof, weighted whitened
+        """At p weighted with sigma: (r_px, J_px, in front, Jw, d2, H_inv, dof, weighted whitened
         residuals), kept for the last (p, sigma) asked: the fit asks its residual's statistics, then the
         covariance at the same point."""
         key = (np.asarray(p, dtype=float).tobytes(), float(sigma))
@@ -425,6 +427,10 @@ class SubsetFits:
         if keys:
             self._fits.update(zip(keys, self._fit_batch(keys)))
 
+    def fitted(self, units) -> SubsetFit | None:
+        """The fit of these units if it has been computed (never computes it)."""
+        return self._fits.get(tuple(sorted(int(u) for u in units)))
+
     def yaw_of(self, units) -> float | None:
         """The yaw of the converged fit of the most of `units` (none of any other unit) fitted so far."""
         units = set(int(u) for u in units)
@@ -522,7 +528,7 @@ def _combined_start(fits: SubsetFits, units: list[int], weights) -> np.ndarray |
     """The joint fit's start from the units' own fits: their poses averaged by their information (each
     own fit's normal matrix, times its unit's weight squared): nearer the joint optimum than any one
     of them, which saves the joint fit an iteration or two. None unless every own fit converged."""
-    own = [fits._fits.get((int(k),)) for k in units]
+    own = [fits.fitted((k,)) for k in units]
     if not own or any(f is None or not f.converged or f.information is None for f in own):
         return None
     w2 = np.ones(len(own)) if weights is None else np.asarray(weights, dtype=float) ** 2
@@ -573,7 +579,8 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
               calib: Calibration = KNOWN, turn_ratio: float | None = TURN_RATIO, unit_weights=None,
               sigma0_w: float | None = None, calib_alpha: float = 1e-3, bias: DetectorBias = NO_BIAS,
               whitener: np.ndarray | None = None) -> Fit:
-    """The weighted level-roof fit from start = (x, y, yaw). sigma_px: corner noise per coordinate if known.
+    """The weighted level-roof fit from start = (x, y, yaw) (or (x, y, yaw, z)). sigma_px: corner noise per
+    coordinate if known.
     Else sigma0_w, when given, is the whitened noise the tags' own fits show (misfit_weights): the fit
     weighs with it (or with the smaller noise its own residual shows), and the covariance takes the noise
     its own residual shows; without sigma0_w (one tag) sigma is estimated from the fit's residual and the
