@@ -327,6 +327,7 @@ def test_bench_rsu_scenario_replays_the_demos_rsus_offline(capsys):
         assert sum(k["frames"] for k in r["by_kind"].values()) == r["frames_in_session"]
     assert sum(r["fixes"] for r in out["rsus"].values()) > 20
     assert out["fix_rate_in_view"] >= 0.8 and 0 < out["fix_fresh_in_session"] <= 1
+    assert 0 < out["tags_in_view_in_session"] < 1  # the bus is announced before the cameras can see it
 
 
 def test_a_tracked_buses_fix_is_final_before_the_frames_search_runs(bus_pass):

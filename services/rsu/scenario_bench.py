@@ -85,6 +85,7 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
     next_approach: dict[str, int] = {}
     last_fix: dict[str, int] = {}
     covered = samples = 0
+    viewed = view_samples = 0  # (first RSU's frame, bus in session): two of its tags in some RSU's view
     for r, t, jpeg in frames:
         truth = world.truth_at(t)
         for bus in world.bus_ids:
@@ -116,6 +117,9 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
         for bus in in_session:
             samples += 1
             covered += bus in last_fix and s_from_ns(t - last_fix[bus]) <= FIX_FRESH_S
+            if r == 0:
+                view_samples += 1
+                viewed += any(len(world.tags_in_view(c.id, t).get(bus, [])) >= 2 for c in world.cameras)
         pipe, tally = pipelines[r], tallies[r]
         c0 = time.process_time()
         res = pipe.process(lambda: cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE), t)
@@ -147,6 +151,8 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
             "searches_with_no_bus_in_view": sum(r["searches_with_no_bus_in_view"] for r in per_rsu.values()),
             # What the bus's "ok" needs: a fix from some RSU in the last second, at every moment in session.
             "fix_fresh_in_session": round(covered / samples, 4) if samples else None,
+            # ... which no RSU can give while none sees two of the bus's tags: the bound on the above.
+            "tags_in_view_in_session": round(viewed / view_samples, 4) if view_samples else None,
             "fix_rate_in_view": round(sum(t.fixed_in_view for t in tallies) / in_view, 4) if in_view else None}
 
 
