@@ -218,6 +218,88 @@ def test_a_turned_camera_is_flagged_and_down_weighted_the_others_not(turn):
     assert pos_err(flt.estimate(), traj) < 0.05
 
 
+# ----------------------------------------------------------------------------- the live pipeline's traps
+# Each of these let the live faults demo flag a healthy RSU after the turned one (issue 13; the offline
+# replay of its fixes is in docs/time-and-trust.md).
+def _exact_fixes(traj, source, every_s=0.1, shift=(0.0, 0.0, 0.0), sigma=(0.01, 0.01, 0.002), t_from=0.0):
+    """Fixes at the true pose plus a constant shift, with a known clock, reporting `sigma`."""
+    out = []
+    for k, t in enumerate(np.arange(t_from, traj.duration, every_s)):
+        st = traj.state_at_ns(traj.t_ns(float(t)))
+        out.append(Fix(t_ns=int(traj.t_ns(float(t))), x=st.x + shift[0], y=st.y + shift[1], yaw=st.yaw + shift[2],
+                       cov=np.diag(np.square(sigma)), source=source, seq=k, clock_bound_ns=MS))
+    return out
+
+
+def test_start_up_takes_no_fix_from_a_flagged_rsu_nor_one_older_than_its_imu(turn):
+    traj, imu = turn
+    rows = list(imu.rows())
+    old = study_filter()
+    drive(old, rows, arrivals(fixes_with(traj, faults_from_options(drift_deg="rsu-se=0.5@2")), {}))
+    assert old.memory()["rsu-se"].flagged
+    new = study_filter(memory=old.memory())
+    se = _exact_fixes(traj, "rsu-se")[20]
+    for r in rows[:25]:
+        new.add_imu(*r)
+    assert new.add_fix(se, arrival_ns=rows[24][0]) is FixOutcome.NOT_INITIALIZED and not new.initialized
+    assert new.counters()["from_flagged_rsu"] == 1
+    late = study_filter(buffer_s=1.0)
+    for r in rows[:300]:  # 3 s of IMU: the first 2 s are gone from the start-up buffer
+        late.add_imu(*r)
+    stale = _exact_fixes(traj, "rsu-nw")[5]
+    assert late.add_fix(stale, arrival_ns=rows[299][0]) is FixOutcome.TOO_OLD and not late.initialized
+    assert late.add_fix(_exact_fixes(traj, "rsu-nw")[25], arrival_ns=rows[299][0]) is FixOutcome.INITIALIZED
+
+
+def test_a_new_filter_remembers_flags_and_offsets_not_the_evidence(turn):
+    traj, imu = turn
+    faults = faults_from_options(drift_deg="rsu-se=0.5@2")
+    old = drive(study_filter(), imu, arrivals(fixes_with(traj, faults), faults))
+    mem = old.memory()
+    assert mem["rsu-se"].flagged and mem["rsu-se"].deviation is not None  # what it was flagged for
+    assert all(r.m is None and r.n_eff == 0 and r.offset is not None for r in mem.values())
+    assert all(r.deviation is None for k, r in mem.items() if k != "rsu-se")
+
+
+def test_a_flagged_rsus_fixes_do_not_keep_the_others_consensus_out(turn):
+    """The filter follows rsu-sw, flagged but with a small remembered disagreement, whose fixes are
+    20 cm off: the others' fixes fail the gate, and the flagged camera's down-weighted fixes, applied
+    meanwhile, neither reset their consensus nor count as the filter being on track: the others
+    take it back within about `reacquire_after_s`."""
+    traj, imu = turn
+    old = study_filter()
+    drive(old, imu, arrivals(fixes_with(traj, faults_from_options(drift_deg="rsu-sw=0.5@0")), {}))
+    mem = old.memory()
+    assert mem["rsu-sw"].flagged
+    mem["rsu-sw"] = mem["rsu-sw"]._replace(deviation=np.array([0.01, 0.0, 0.0]))
+    flt = study_filter(memory=mem)
+    st = traj.state_at_ns(traj.t_ns(1.0))
+    flt.initialize(traj.t_ns(1.0), st.x, st.y + 0.2, st.yaw, cov=np.diag([1e-4, 1e-4, 1e-6]), speed=st.speed,
+                   trusted=True)
+    fixes = _exact_fixes(traj, "rsu-sw", shift=(0.0, 0.2, 0.0), t_from=1.05) + \
+        [f for src in ("rsu-ne", "rsu-nw") for f in _exact_fixes(traj, src, t_from=1.07)]
+    drive(flt, [r for r in imu.rows() if r[0] > traj.t_ns(1.0)], arrivals(fixes, {}))
+    per = flt.counters()["per_source"]
+    assert per["rsu-ne"].get("reacquired", 0) + per["rsu-nw"].get("reacquired", 0) >= 1
+    assert per["rsu-ne"]["accepted"] > 0.8 * sum(per["rsu-ne"].values())
+    assert pos_err(flt.estimate(), traj) < 0.05
+    assert not any(a.flagged for k, a in flt.rsu_assessments().items() if k != "rsu-sw")
+
+
+def test_a_precise_rsu_shows_its_whole_disagreement_with_a_pulled_filter():
+    """Innovations are clipped (one wild fix counts as 10 sigma at most), but never below the drift
+    thresholds' scale: a 1 cm RSU 30 cm from a filter a turned camera pulled shows 30 cm, not 10 sigma."""
+    rule = BusFilter(FilterConfig())._drift
+    from toptag.fusion.trust import RsuRecord
+    rec = RsuRecord(last_t=0, clock_known=True)
+    S = np.diag([1e-4, 1e-4, 1e-6])
+    for k in range(10):
+        rec = rule.accumulate(rec, k * 100 * MS, np.array([0.3, 0.0, 0.0]), S)
+    assert abs(rec.m[0] - 0.3) < 1e-9
+    wild = rule.accumulate(rec, 1000 * MS, np.array([50.0, 0.0, 0.0]), S)
+    assert wild.m[0] < 2.0  # clipped: 10 sigma of the thresholds' scale
+
+
 def test_refuse_policy_refuses_a_flagged_rsu(turn):
     traj, imu = turn
     faults = faults_from_options(drift_deg="rsu-se=0.3@2")

@@ -162,7 +162,8 @@ class FilterConfig(BaseModel):
     drift_min_fixes: float = Field(default=10.0, ge=1)  # effective number of fixes before a flag
     drift_max_offset_sigma_ms: float = Field(default=10.0, gt=0)  # no flag while the RSU's offset is this uncertain
     drift_min_others: int = Field(default=2, ge=1)  # other RSUs seeing the bus meanwhile, to tell who is wrong
-    drift_clip_sigma: float = Field(default=10.0, gt=0)  # one fix's innovation counts at most this many sigmas
+    # one fix's innovation counts at most this many sigmas (of its covariance plus the thresholds above)
+    drift_clip_sigma: float = Field(default=10.0, gt=0)
     flagged_policy: Literal["downweight", "refuse"] = "downweight"
     flagged_cov_scale: float = Field(default=4.0, ge=1)  # downweight: R -> scale * (R + bias bias^T)
     # health
@@ -195,6 +196,7 @@ class _Gate(NamedTuple):
     clocks: tuple = ()  # RSUs holding a time-offset slot, in state order (index STATE_DIM + i)
     rsus: MappingProxyType | dict = _NO_RSUS  # RSU id -> toptag.fusion.trust.RsuRecord (copy-on-write)
     time_ref: str | None = None  # the unknown-clock RSU whose time the filter follows while no clock is known
+    last_trusted_ns: int | None = None  # capture time of the last applied fix from an RSU not flagged (or start)
 
 
 class _Step:
@@ -254,6 +256,7 @@ class BusFilter:
         self._fix_recs: list[FixRecord] = []
         self._seen: set[tuple] = set()
         self._pre_imu: list[tuple[int, tuple]] = []
+        self._pre_imu_dropped_ns: int | None = None  # newest IMU sample dropped from the start-up buffer
         self._last_imu_t: int | None = None
         self._start_ns: int | None = None
         self._archived: dict[str, int] = count_outcomes([])
@@ -301,6 +304,7 @@ class BusFilter:
             self._pre_imu.append((t_ns, u))
             cut = t_ns - self._buffer_ns
             if self._pre_imu[0][0] < cut:
+                self._pre_imu_dropped_ns = max(p[0] for p in self._pre_imu if p[0] < cut)
                 self._pre_imu = [p for p in self._pre_imu if p[0] >= cut]
             return True
         self._ensure_clean()
@@ -326,7 +330,7 @@ class BusFilter:
         P3 = np.diag([pos_sigma ** 2, pos_sigma ** 2, yaw_sigma ** 2]) if cov is None else \
             np.asarray(cov, dtype=float).reshape(3, 3)
         t_ns = int(t_ns)
-        gate = _Gate(TRACKING, t_ns, 0, ()) if trusted else _Gate(ACQUIRING, None, 0, ())
+        gate = _Gate(TRACKING, t_ns, 0, (), last_trusted_ns=t_ns) if trusted else _Gate(ACQUIRING, None, 0, ())
         self._start(t_ns, np.array([x, y, wrap_angle(yaw)]), P3, gate, speed, speed_sigma)
 
     def add_fix(self, fix: Fix, arrival_ns: int | None = None) -> FixOutcome:
@@ -427,13 +431,23 @@ class BusFilter:
 
     # ------------------------------------------------------------------ start-up
     def _maybe_start_from(self, fix: Fix, arrival: int | None) -> FixOutcome:
+        """Start from a confident fix, unless its RSU is flagged for drift (remembered from an earlier
+        filter: the filter would follow the turned camera and judge the healthy ones against it) or the
+        IMU history around its time is gone (a fix older than the start-up buffer, late on a busy machine:
+        the first step would dead-reckon over the gap with one sample's input)."""
         c = self.cfg
         sd = np.sqrt(np.diag(fix.cov))
         if not c.init_from_fix or max(sd[0], sd[1]) > c.init_max_pos_sigma or sd[2] > c.init_max_yaw_sigma:
             return self._count_now(fix, FixOutcome.NOT_INITIALIZED)
+        remembered = self._memory.get(fix.source)
+        if remembered is not None and remembered.flagged:
+            self._archive(fix, FixOutcome.NOT_INITIALIZED, flagged=True)
+            return FixOutcome.NOT_INITIALIZED
+        if self._pre_imu_dropped_ns is not None and fix.t_ns <= self._pre_imu_dropped_ns:
+            return self._count_now(fix, FixOutcome.TOO_OLD)
         delay = None if arrival is None else int(arrival) - fix.t_ns
-        self._start(fix.t_ns, fix.pose, fix.cov, _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source), None, None,
-                    first=fix)
+        gate = _Gate(TRACKING, fix.t_ns, 0, (), delay, fix.source, last_trusted_ns=fix.t_ns)
+        self._start(fix.t_ns, fix.pose, fix.cov, gate, None, None, first=fix)
         self._seen.add((fix.source, "seq", fix.seq))
         self._seen.add((fix.source, "t", fix.t_ns))
         return self._count_now(fix, FixOutcome.INITIALIZED)
@@ -736,7 +750,12 @@ class BusFilter:
         offset_before = None if i is None else (float(x[i]), float(P[i, i]))
         x, P, g2, outcome, d2 = self._gate(x, P, g, fix, arrival_ns, H, nu, PHt, HPHt, off_var, rec,
                                            i if flagged else None)
-        if outcome is not FixOutcome.UNCONFIRMED and not (g.mode == ACQUIRING and not outcome.applied):
+        if outcome is FixOutcome.REACQUIRED:
+            # The filter jumps to a consensus it had rejected: every RSU's evidence was gathered against
+            # the track before the jump (this fix's too), and weighed against evidence after it, it would
+            # pass for a disagreement between RSUs. The detector starts afresh (flags kept).
+            g2 = g2._replace(rsus=MappingProxyType({k: r.restart() for k, r in g2.rsus.items()}))
+        elif outcome is not FixOutcome.UNCONFIRMED and not (g.mode == ACQUIRING and not outcome.applied):
             g2, flagged_now = self._observe(g2, fix, nu, HPHt, offset_before)
             if flagged_now and not flagged:
                 x, P = self._distrust(x, P, i, g2.rsus[rsu], self._offset_prior(fix))
@@ -747,18 +766,24 @@ class BusFilter:
     def _gate(self, x, P, g: _Gate, fix: Fix, arrival_ns, H, nu, PHt, HPHt, off_var, rec, freeze):
         """The gate and the update: (x, P, gate, outcome, d2). A flagged RSU's fix is gated with its
         known disagreement added to its covariance and applied with that covariance scaled
-        (down-weighted), or refused; consensus uses the fix's own covariance."""
+        (down-weighted), or refused; consensus uses the fix's own covariance.
+        A flagged RSU's fixes are no evidence that the filter is on track: they neither join nor
+        reset the consensus of rejected fixes, and the filter counts as starving (open to that
+        consensus) from the last fix of an RSU not flagged. So when the filter was following the
+        camera now flagged, the other RSUs, once they agree, take it back (a majority wins)."""
         rsu = fix.source
         R = R_gate = fix.cov
-        if rec is not None and rec.flagged:
+        trusted = rec is None or not rec.flagged
+        if not trusted:
             if self.cfg.flagged_policy == "refuse":
                 return x, P, g, FixOutcome.REFUSED_FLAGGED, float("nan")
             m = rec.disagreement()
             R_gate = R + np.outer(m, m)
             R = self.cfg.flagged_cov_scale * R_gate
         delay = None if arrival_ns is None else arrival_ns - fix.t_ns
-        applied = g._replace(mode=TRACKING, last_accept_ns=fix.t_ns, consecutive=0, cands=(), last_delay_ns=delay,
-                             last_source=rsu)
+        applied = g._replace(mode=TRACKING, last_accept_ns=fix.t_ns, consecutive=0, cands=() if trusted else g.cands,
+                             last_delay_ns=delay, last_source=rsu,
+                             last_trusted_ns=fix.t_ns if trusted else g.last_trusted_ns)
         S = HPHt + R
         if self._gate_thr == math.inf:
             x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
@@ -781,10 +806,12 @@ class BusFilter:
         if d2 <= self._gate_thr:
             x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
             return x, P, applied, FixOutcome.ACCEPTED, d2
+        if not trusted:
+            return x, P, g._replace(consecutive=g.consecutive + 1), FixOutcome.REJECTED_GATE, d2
         cand = _Cand(fix.t_ns, rsu, nu, fix.cov, np.diag(P[:3, :3]).copy())
         cands = self._window(g.cands, fix.t_ns) + (cand,)
-        starving = g.last_accept_ns is None or \
-            fix.t_ns - g.last_accept_ns >= ns_from_s(self.cfg.reacquire_after_s)
+        starving = g.last_trusted_ns is None or \
+            fix.t_ns - g.last_trusted_ns >= ns_from_s(self.cfg.reacquire_after_s)
         if starving and self._consensus(cands, self.cfg.reacquire_min_fixes, self.cfg.reacquire_min_sources):
             P = P.copy()
             P[:3, :3] += np.diag(nu * nu)
@@ -930,7 +957,10 @@ class BusFilter:
 
     def memory(self) -> dict[str, RsuRecord]:
         """What a new filter for the same bus may start from (BusFilter(config, memory=...)): every
-        RSU's record with its time offset, flag and disagreement as they stand at the newest step."""
+        RSU's record with its time offset and flag (and a flagged RSU's disagreement) as they stand at
+        the newest step. Not the detector's evidence: innovations are against this filter, whose errors
+        the next one does not share (e.g. the pull of a turned camera it followed before flagging it);
+        weighed against the next filter's, they would pass for a disagreement between RSUs."""
         if not self._steps:
             return dict(self._memory)
         self._ensure_clean()
@@ -939,7 +969,7 @@ class BusFilter:
         for rsu, rec in head.g.rsus.items():
             if rsu in head.g.clocks:
                 rec = rec._replace(offset=_slot_offset(head, rsu), offset_t=head.t)
-            out[rsu] = rec
+            out[rsu] = rec.restart()
         return out
 
 

@@ -13,7 +13,10 @@ of that RSU)::
     T = b' A2^-1 b      chi-square, 3 dof: how persistent its disagreement with the filter is
 
 A single wild fix cannot do much: nu is clipped to a Mahalanobis radius (`clip_sigma`, 10) before it
-enters b, so it weighs like a 10-sigma fix at most.
+enters b, so it weighs like a 10-sigma fix at most. The radius is taken on S plus the drift thresholds
+(`min_pos_m`, `min_yaw_rad`) as a covariance: on S alone, a precise RSU's innovations against a filter
+that a turned camera pulls by 30 cm would be cut to a few cm, and precise and coarse RSUs, seeing the
+same pull, would seem to disagree among themselves.
 
 The test. The filter follows every RSU a little, and it may follow a wrong one a lot (it starts
 from whichever RSU sees the bus first: if that camera is turned, the others look wrong to it). So an
@@ -34,10 +37,14 @@ It is cleared when, over at least `min_fixes` fixes again and with the others in
 below the `clear_probability` quantile (old evidence fades with the window: a camera seen agreeing on
 the next pass is cleared within a second or two).
 Innovations enter only while the filter is healthy (tracking, a fix applied within the last second).
+Evidence is only ever compared within one track: it starts afresh for every RSU when the filter jumps
+to a consensus it had rejected (reacquisition), for the others when an RSU is flagged, and for all in a
+new filter (BusFilter.memory carries offsets and flags, not evidence).
 While an RSU is flagged its fixes are down-weighted (covariance scaled and d d' added) or refused
 (`FilterConfig.flagged_policy`); the filter, if it was following it, widens its pose by the others'
 mean disagreement so that they can pull it back, and the others' evidence, gathered against that
-filter, starts afresh (toptag.fusion.filter).
+filter, starts afresh; its fixes neither start a new filter nor keep the others' consensus from taking
+the filter back (toptag.fusion.filter).
 
 Pure: no I/O. Records are immutable (copy-on-write): the filter keeps one set per buffered step and
 re-derives them on re-propagation, so an out-of-order replay ends with the same flags."""
@@ -87,9 +94,10 @@ class RsuRecord(NamedTuple):
         return self.m, self.C
 
     def restart(self) -> RsuRecord:
-        """The record without its evidence (its flag, clock and offsets kept)."""
-        return self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None,
-                             deviation=None, deviation_stat=0.0, others_mean=None)
+        """The record without its evidence (its flag, clock and offsets kept; a flagged RSU keeps the
+        disagreement it was flagged for, which down-weights its fixes until new evidence decides)."""
+        rec = self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None)
+        return rec if self.flagged else rec._replace(deviation=None, deviation_stat=0.0, others_mean=None)
 
     def disagreement(self) -> np.ndarray:
         """Its disagreement: the deviation from the other RSUs when known, else from the filter."""
@@ -124,7 +132,7 @@ class DriftRule:
     def accumulate(self, rec: RsuRecord, t_ns: int, nu: np.ndarray, S: np.ndarray) -> RsuRecord:
         """The record with one more innovation nu (covariance S) at t_ns."""
         Si = np.linalg.inv(S)
-        d2 = float(nu @ Si @ nu)
+        d2 = _chi2(nu, S + self._floor)
         if d2 > self.clip_d2:
             nu = nu * math.sqrt(self.clip_d2 / d2)
         if rec.A is None:
@@ -136,6 +144,14 @@ class DriftRule:
         Ai = np.linalg.inv(A)
         return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=_chi2(b, A2), n_eff=sw * sw / sw2, sums=(sw, sw2),
                             m=Ai @ b, C=Ai @ A2 @ Ai)
+
+    @property
+    def _floor(self) -> np.ndarray:
+        """The smallest disagreement that counts as drift, as a covariance: the clip's scale is never
+        below it. Clipped on the fix's own S alone, a precise RSU's innovations against a filter that a
+        turned camera pulls by 30 cm would count as a few cm, and its mean innovation would understate
+        what every other precise RSU sees (they would then seem to disagree among themselves)."""
+        return np.diag([self.min_pos_m ** 2, self.min_pos_m ** 2, self.min_yaw_rad ** 2])
 
     def _large(self, d: np.ndarray) -> bool:
         return math.hypot(d[0], d[1]) > self.min_pos_m or abs(d[2]) > self.min_yaw_rad
