@@ -286,6 +286,29 @@ def test_a_flagged_rsus_fixes_do_not_keep_the_others_consensus_out(turn):
     assert not any(a.flagged for k, a in flt.rsu_assessments().items() if k != "rsu-sw")
 
 
+def test_a_flagged_rsus_fixes_move_no_time_offset(turn):
+    """A turned camera's bias along the track would pass for a late clock: its fixes, down-weighted,
+    still move the pose, not the other RSUs' time offsets (nor its own, held since it was flagged)."""
+    traj, imu = turn
+    old = study_filter()
+    faults = faults_from_options(drift_deg="rsu-sw=0.5@0", clock_offset_ms="rsu-ne=40")
+    drive(old, imu, arrivals(fixes_with(traj, faults), faults))
+    assert old.memory()["rsu-sw"].flagged
+    flt = study_filter(memory=old.memory())
+    rows = list(imu.rows())
+    fixes = [f for f in fixes_with(traj, faults, seed=9) if f.source != "rsu-sw" and f.t_ns < traj.t_ns(5.0)]
+    drive(flt, [r for r in rows if r[0] <= traj.t_ns(5.0)], arrivals(fixes, faults))
+    before = {k: (a.offset_s, a.offset_sigma_s) for k, a in flt.rsu_assessments().items()}
+    st = traj.state_at_ns(flt.head_ns)  # at the newest step: no later fix is re-applied
+    outcome = flt.add_fix(Fix(t_ns=flt.head_ns, x=st.x + 0.05, y=st.y, yaw=st.yaw, cov=np.diag([25e-4, 25e-4, 1e-5]),
+                              source="rsu-sw", seq=99_999, clock_bound_ns=MS))
+    assert outcome.applied
+    after = {k: (a.offset_s, a.offset_sigma_s) for k, a in flt.rsu_assessments().items()}
+    moved = {k: abs(after[k][0] - v[0]) for k, v in before.items() if v[0] is not None and k != "rsu-sw"}
+    assert set(moved) == {"rsu-ne", "rsu-nw", "rsu-se"}
+    assert max(moved.values()) < 1e-6  # < 1 us (the IMU update after it in the same step); 30 us if it taught them
+
+
 def test_a_precise_rsu_shows_its_whole_disagreement_with_a_pulled_filter():
     """Innovations are clipped (one wild fix counts as 10 sigma at most), but never below the drift
     thresholds' scale: a 1 cm RSU 30 cm from a filter a turned camera pulled shows 30 cm, not 10 sigma."""

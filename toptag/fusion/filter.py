@@ -645,9 +645,9 @@ class BusFilter:
         return self._kalman(x, P, H, nu, R)
 
     @staticmethod
-    def _kalman(x, P, H, nu, R, PHt=None, S=None, freeze: int | None = None):
-        """Kalman update (Joseph form: right for any gain). `freeze`: a state the update must leave
-        alone (its gain row zeroed, a Schmidt "consider" state): a flagged RSU's time offset, which its
+    def _kalman(x, P, H, nu, R, PHt=None, S=None, freeze: slice | None = None):
+        """Kalman update (Joseph form: right for any gain). `freeze`: states the update must leave
+        alone (their gain rows zeroed, Schmidt "consider" states): the time offsets, which a flagged RSU's
         biased fixes would otherwise pull."""
         if PHt is None:
             PHt = P @ H.T
@@ -745,11 +745,13 @@ class BusFilter:
         HPHt = H @ PHt
         rec = g.rsus.get(rsu)
         flagged = rec is not None and rec.flagged
-        # A flagged RSU does not move its own time offset (a consider state): a turned camera's bias
-        # along the track would pass for a late clock.
+        # A flagged RSU moves no time offset (consider states): a turned camera's bias along the track
+        # would pass for a late clock, its own or, through the pose, another RSU's. Down-weighting does
+        # not stop a bias that every fix repeats from adding up; the offsets keep what the RSUs that
+        # agree taught them.
         offset_before = None if i is None else (float(x[i]), float(P[i, i]))
         x, P, g2, outcome, d2 = self._gate(x, P, g, fix, arrival_ns, H, nu, PHt, HPHt, off_var, rec,
-                                           i if flagged else None)
+                                           slice(STATE_DIM, n) if flagged and i is not None else None)
         if outcome is FixOutcome.REACQUIRED:
             # The filter jumps to a consensus it had rejected: every RSU's evidence was gathered against
             # the track before the jump (this fix's too), and weighed against evidence after it, it would
