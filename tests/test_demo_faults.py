@@ -28,12 +28,13 @@ SETTLED_SIGMA_MS = 5.0
 GENEROUS_MS = 15.0  # live fixes from rendered images, on a machine others share
 
 
-# A known defect, not a load effect: on the fresh-clone run of 2026-11-22 (load ~5) the turned rsu-sw was
-# flagged (10.2 cm / 0.25 deg) and, 31 s later, the healthy rsu-se too (23.6 cm / 0.13 deg): once the turned
-# camera is flagged, the live pipeline's own biases (up to 3 cm / 0.13 deg, yaw spread twice its covariance:
-# docs/time-and-trust.md) and the track it pulled are judged as drift. Issue 13 stays open on it; the test
-# runs and reports XPASS when the detector is fixed.
-@pytest.mark.xfail(reason="live drift detector: a healthy RSU is sometimes flagged after the turned one "
+# Issue 13. A healthy RSU used to be flagged after the turned one (rsu-se, 23.6 cm / 0.13 deg, fresh-clone run
+# of 2026-11-22); the causes, found by replaying the live pipeline's fixes offline, are fixed in
+# toptag.fusion (docs/time-and-trust.md, "Drifted cameras"), and no run since has flagged a healthy RSU.
+# Still not reliable on a very busy machine: two runs side by side at load ~15 (each RSU under 0.2 fixes a
+# second) never flagged the turned camera in the 600 s the test waits (the detector's evidence now starts
+# afresh with every pass, and a pass brought too few fixes); alone or at load ~9 it passed 3 of 3.
+@pytest.mark.xfail(reason="on a very busy machine the turned camera may not be flagged within 600 s "
                           "(issue 13)", strict=False)
 def test_demo_estimates_the_injected_offset_and_flags_only_the_turned_camera(tmp_path):
     report = tmp_path / "report.json"
