@@ -50,8 +50,7 @@ import numpy as np
 from scipy import stats
 
 from toptag.geometry import rodrigues
-from toptag.solvers.common import SIGMA_FLOOR_PX as COMMON_FLOOR_PX
-from toptag.solvers.common import SIGMA_PRIOR_PX, Fit, estimate_sigma, rms, safe_inverse
+from toptag.solvers.common import SIGMA_FLOOR_PX, SIGMA_PRIOR_PX, Fit, estimate_sigma, rms, safe_inverse
 from toptag.solvers.hopt import initial_pose, initial_poses
 from toptag.solvers.lm import LmResult, levenberg_marquardt_batch
 from toptag.solvers.model import (
@@ -72,10 +71,6 @@ from toptag.solvers.model import (
 
 TURN_RATIO = 1.0  # sigma(turn) / sigma(offset) of an edge, real photographs (0.6-1.1)
 TAG_RATIO = 1.0  # sigma of a tag's common edge offset / sigma(offset), real photographs (0.6-1.25)
-# Per corner coordinate: the real cameras' corner noise (the prior pooled into every estimate from the
-# residuals, and the starting weight) and its floor, as every solver uses them.
-DETECTOR_SIGMA_PX = SIGMA_PRIOR_PX
-LEVEL_SIGMA_FLOOR_PX = COMMON_FLOOR_PX
 
 
 @dataclass(frozen=True)
@@ -592,7 +587,7 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
     at least that often) makes the fit unusable: the cameras disagree by more than their calibration.
     whitener: edge_whitener(c.pixels, turn_ratio) when the caller has it already."""
     scale = noise_scale(turn_ratio)
-    floor_w, prior_w = LEVEL_SIGMA_FLOOR_PX / scale, DETECTOR_SIGMA_PX / scale
+    floor_w, prior_w = SIGMA_FLOOR_PX / scale, SIGMA_PRIOR_PX / scale
     prob = LevelProblem(c, h, sigma_h, calib, turn_ratio, unit_weights, whitener, bias=bias)
     known = sigma_px is not None
     p = prob.start(start)
@@ -667,9 +662,9 @@ def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float
     keep = list(keep)
     if len(keep) >= 2 and weigh_misfits:
         if fits is None or fits.turn_ratio != turn_ratio or fits.c is not c:
-            sigma_w = sigma_px / scale if sigma_px is not None else DETECTOR_SIGMA_PX / scale
+            sigma_w = sigma_px / scale if sigma_px is not None else SIGMA_PRIOR_PX / scale
             fits = SubsetFits(c, h, sigma_h, turn_ratio, sigma_w)
-        weights, sigma0_w, ratio = misfit_weights(fits, keep, LEVEL_SIGMA_FLOOR_PX / scale, calib)
+        weights, sigma0_w, ratio = misfit_weights(fits, keep, SIGMA_FLOOR_PX / scale, calib)
         out = weights < MISFIT_DROP_WEIGHT
         if out.any():
             for k, r in zip(np.array(keep)[out], ratio[out]):
