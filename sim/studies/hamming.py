@@ -19,7 +19,6 @@ Writes DIR/results.json when --out is given.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -30,6 +29,7 @@ from sim.patterns import family_size
 from sim.render import render
 from sim.sampling import sector_pose
 from sim.scene import bundled_vehicle, rsu_camera
+from sim.studies import write_results
 from toptag.dataset import Dataset
 from toptag.detection import DetectorSettings, TagDetector
 from toptag.vehicle import FAMILY_BITS, Vehicle
@@ -151,9 +151,7 @@ def main(argv: list[str] | None = None) -> int:
               f"per frame for a 2-id bag at gate 0/1/2: "
               + " / ".join(f"{v:.1e}" for v in r["per_frame_for_a_2_id_bag"].values()))
     if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
-        print(f"wrote {args.out / 'results.json'}")
+        print(f"wrote {write_results(args.out, res)}")
     return 0
 
 

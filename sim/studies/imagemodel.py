@@ -17,13 +17,12 @@ Writes DIR/results.json and DIR/imagemodel.png.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from sim.studies import require_plotting
+from sim.studies import require_plotting, write_results
 from toptag.errors import SetupError, report
 
 from sim.image_model import ImageModel
@@ -152,8 +151,7 @@ def main(argv: list[str] | None = None) -> int:
             r = rendered_errors(model.model_copy(update=change), args.frames, args.seed, speed_max=speed)
             res["effects"][name] = {"change": change, "bus_speed_max_mps": speed, **stats(r, shift),
                                     "detection_rate": r["tags_found"] / r["tags"]}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
+    write_results(args.out, res)
     _plot(real, pooled, rendered, legacy, res, args.out / "imagemodel.png")
     for name, s in list(res["real"].items()) + [("real, pooled", rp), ("rendered (default model)", rr),
                                                     ("rendered (old default)", res["legacy"])]:

@@ -13,7 +13,6 @@ for a bus on this pipeline (docs/time-and-trust.md). Writes DIR/results.json whe
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -22,6 +21,7 @@ import cv2
 import numpy as np
 
 from sim.scenario import bundled_scenario_path, load_scenario
+from sim.studies import write_results
 from sim.world import World
 from toptag.errors import InputError, report
 from toptag.progress import Progress
@@ -88,9 +88,7 @@ def main(argv: list[str] | None = None) -> int:
               f"(bias {r['bias_cm']:.1f} cm); spread {s[0]:.1f} / {s[1]:.1f} cm, {s[2]:.2f} deg; "
               f"reported sigma {q[0]:.1f} / {q[1]:.1f} cm, {q[2]:.2f} deg")
     if a.out:
-        a.out.mkdir(parents=True, exist_ok=True)
-        (a.out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
-        print(f"wrote {a.out / 'results.json'}")
+        print(f"wrote {write_results(a.out, res)}")
     return 0
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.studies import require_plotting
+from sim.studies import require_plotting, write_results
 from toptag.errors import SetupError, report
 
 from toptag.dataset import (
@@ -384,10 +384,9 @@ def main(argv: list[str] | None = None) -> int:
     summary = summarise(ds, results, args.max_hamming)
     print(render_text(summary))
     if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "results.json").write_text(json.dumps(summary, indent=1) + "\n")
+        path = write_results(args.out, summary)
         plot(summary, results, args.out / "real.png")
-        print(f"wrote {args.out / 'results.json'} and {args.out / 'real.png'}")
+        print(f"wrote {path} and {args.out / 'real.png'}")
     return 0
 
 
