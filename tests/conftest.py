@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -81,6 +82,32 @@ def assert_fused_claims_hold(bus: str, b: dict) -> None:
     assert b["fused_ok_samples"] > 0, (bus, b)
     assert b["fused_ok_held_fraction"] >= 0.9, (bus, b)
     assert b["fused_confident_pos_rms_m"] is None or b["fused_confident_pos_rms_m"] < 0.08, (bus, b)
+
+
+class DemoRun:
+    """`toptag demo ARGS` as a user runs it: its stdout (the live table) read as it comes, its stderr into a
+    file (a pipe nobody reads while the demo runs would fill and block it); stopped with Ctrl-C."""
+
+    def __init__(self, args: list[str], tmp_path: Path):
+        self.err_path = tmp_path / "demo.stderr"
+        with open(self.err_path, "w") as err:
+            self.proc = subprocess.Popen([sys.executable, "-m", "toptag", "demo", *args], cwd=REPO, env=clean_env(),
+                                         stdout=subprocess.PIPE, stderr=err, text=True)
+        self._out: list[str] = []
+        self._reader = threading.Thread(target=lambda: self._out.extend(self.proc.stdout), daemon=True)
+        self._reader.start()
+
+    def stdout(self) -> str:
+        return "".join(self._out)
+
+    def stderr(self) -> str:
+        return self.err_path.read_text(errors="replace")
+
+    def stop(self) -> int:
+        """Ctrl-C (every service stopped, the report written) and the exit code."""
+        code = stop_process(self.proc, signal.SIGINT, grace_s=120)
+        self._reader.join(10)
+        return code
 
 
 def clean_env(extra: dict | None = None) -> dict:

@@ -5,16 +5,11 @@ pose for each), then gets Ctrl-C, as a user would stop it: the checks count outc
 second, so a busy machine only makes the test wait longer."""
 import json
 import re
-import signal
-import subprocess
-import sys
-import threading
 
 import pytest
 
-from conftest import REPO, assert_fused_claims_hold, clean_env
+from conftest import DemoRun, assert_fused_claims_hold
 
-from services.processes import stop_process
 from toptag.waiting import wait_until
 
 pytestmark = pytest.mark.system
@@ -25,29 +20,22 @@ ENOUGH_FIXES = 40
 
 def test_demo_runs_two_buses_through_four_rsus_and_reports(tmp_path):
     report = tmp_path / "report.json"
-    err_path = tmp_path / "demo.stderr"  # a file, not a pipe: nothing here reads stderr while it runs
-    with open(err_path, "w") as err:
-        p = subprocess.Popen([sys.executable, "-m", "toptag", "demo", "--duration", "600", "--period", "1",
-                              "--report", str(report), "--logs", str(tmp_path / "logs")], cwd=REPO, env=clean_env(),
-                             stdout=subprocess.PIPE, stderr=err, text=True)
-    out: list[str] = []
-    reader = threading.Thread(target=lambda: out.extend(p.stdout), daemon=True)
-    reader.start()
+    demo = DemoRun(["--duration", "600", "--period", "1", "--report", str(report), "--logs", str(tmp_path / "logs")],
+                   tmp_path)
 
     def localized() -> bool:  # the progress lines: each bus has had enough fixes, and a fused pose "ok"
-        text = "".join(out)
+        text = demo.stdout()
         lines = {bus: re.findall(rf"{bus}\s+fixes\s+(\d+) .*\((\w+)\)", text) for bus in BUSES}
         return all(m and int(m[-1][0]) >= ENOUGH_FIXES and any(status == "ok" for _, status in m)
                    for m in lines.values())
 
     try:
-        assert wait_until(lambda: localized() or p.poll() is not None, 400, 60), "".join(out)[-3000:]
-        assert p.poll() is None, "".join(out)[-3000:] + err_path.read_text()[-3000:]
+        assert wait_until(lambda: localized() or demo.proc.poll() is not None, 400, 60), demo.stdout()[-3000:]
+        assert demo.proc.poll() is None, demo.stdout()[-3000:] + demo.stderr()[-3000:]
     finally:
-        code = stop_process(p, signal.SIGINT, grace_s=120)  # Ctrl-C: stop every service, write the report
-        reader.join(10)
-    stdout = "".join(out)
-    assert code == 0, stdout[-3000:] + err_path.read_text()[-3000:]
+        code = demo.stop()
+    stdout = demo.stdout()
+    assert code == 0, stdout[-3000:] + demo.stderr()[-3000:]
     r = json.loads(report.read_text())
     assert set(r["rsus"]) == {"rsu-sw", "rsu-se", "rsu-ne", "rsu-nw"}
     assert all(v == 0 for v in r["exit_codes"].values()), r["exit_codes"]

@@ -7,16 +7,11 @@ near 40 ms and flags on rsu-sw only. The checks count outcomes and wait on what 
 on the clock, so a busy machine only makes the test wait longer."""
 import json
 import re
-import signal
-import subprocess
-import sys
-import threading
 
 import pytest
 
-from conftest import REPO, clean_env
+from conftest import REPO, DemoRun
 
-from services.processes import stop_process
 from toptag.waiting import wait_until
 
 pytestmark = pytest.mark.system
@@ -38,28 +33,23 @@ GENEROUS_MS = 15.0  # live fixes from rendered images, on a machine others share
                           "(issue 13)", strict=False)
 def test_demo_estimates_the_injected_offset_and_flags_only_the_turned_camera(tmp_path):
     report = tmp_path / "report.json"
-    p = subprocess.Popen([sys.executable, "-m", "toptag", "demo", "--scenario", str(SCENARIO), "--duration", "900",
-                          "--period", "1", "--report", str(report), "--logs", str(tmp_path / "logs")], cwd=REPO,
-                         env=clean_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    out: list[str] = []
-    reader = threading.Thread(target=lambda: out.extend(p.stdout), daemon=True)
-    reader.start()
+    demo = DemoRun(["--scenario", str(SCENARIO), "--duration", "900", "--period", "1", "--report", str(report),
+                    "--logs", str(tmp_path / "logs")], tmp_path)
     offset_line = re.compile(rf"{OFFSET_RSU} .* offset bus-17 ([+-]\d+\.\d)±(\d+\.\d) ms")
 
     def settled() -> bool:  # the live table: rsu-ne's offset known to 5 ms, rsu-sw flagged
-        text = "".join(out)
+        text = demo.stdout()
         est = offset_line.findall(text)
         flagged = re.search(rf"{DRIFT_RSU} .* DRIFT \(bus-17", text)
         return bool(est) and float(est[-1][1]) <= SETTLED_SIGMA_MS and flagged is not None
 
     try:
-        assert wait_until(lambda: settled() or p.poll() is not None, 600, 60), "".join(out)[-4000:]
-        assert p.poll() is None, "".join(out)[-3000:] + p.stderr.read()[-3000:]
+        assert wait_until(lambda: settled() or demo.proc.poll() is not None, 600, 60), demo.stdout()[-4000:]
+        assert demo.proc.poll() is None, demo.stdout()[-3000:] + demo.stderr()[-3000:]
     finally:
-        code = stop_process(p, signal.SIGINT, grace_s=120)
-        reader.join(10)
-    stdout = "".join(out)
-    assert code == 0, stdout[-3000:] + p.stderr.read()[-3000:]
+        code = demo.stop()
+    stdout = demo.stdout()
+    assert code == 0, stdout[-3000:] + demo.stderr()[-3000:]
     r = json.loads(report.read_text())
     offset = r["rsus"][OFFSET_RSU]["time_offset_ms"]["bus-17"]
     assert abs(offset["estimate"] - OFFSET_MS) < GENEROUS_MS and offset["sigma"] <= 2 * SETTLED_SIGMA_MS, offset
