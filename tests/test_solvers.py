@@ -737,3 +737,80 @@ def test_a_two_tag_solve_evaluates_its_model_a_few_times(monkeypatch):
             calls.update({"level": 0, "6-dof": 0})
             assert solve(vehicle, obs, method, weighting="principled").ok
             assert calls["level"] <= most and calls["6-dof"] == 0, (i, method, calls)
+
+
+def test_garbled_tags_are_screened_as_if_every_frame_were(monkeypatch):
+    """The leave-one-out screening runs only when the fit of every tag says a tag could be dropped
+    (robust.screening_needed): for garbled tags (one corner 1-4 px off, 6-20 m) every solver drops the
+    same tags, and reports the same pose, as with the screening run on every frame (whose drops need the
+    screening to have run)."""
+    import toptag.solvers.api as api
+    from toptag.solvers.robust import Consistency
+
+    rng = np.random.default_rng(33)
+    vehicle = bundled_vehicle("bus_double")
+    screened = {"n": 0}
+    real_screen = api.screen_outliers
+
+    def counted(*args, **kwargs):
+        screened["n"] += 1
+        return real_screen(*args, **kwargs)
+
+    monkeypatch.setattr(api, "screen_outliers", counted)
+    real_needed = api.screening_needed
+    frames = drops = 0
+    while frames < 24:
+        pose = at_distance(rng.uniform(6, 20), rng.uniform(0.5, 1.1), rng.uniform(-math.pi, math.pi))
+        obs = observe_edges(vehicle, pose, rng=rng, dz=rng.uniform(-0.1, 0.1))
+        if len(obs) < 2:
+            continue
+        frames += 1
+        size = rng.uniform(1.0, 4.0)
+        a = rng.uniform(0, 2 * math.pi)
+        bad = [garble(obs[0], int(rng.integers(4)), size * np.array([math.cos(a), math.sin(a)])), obs[1]]
+        for method, weighting in ALL:
+            screened["n"] = 0
+            monkeypatch.setattr(api, "screening_needed", real_needed)
+            gated = solve(vehicle, bad, method, weighting=weighting, limits=NO_LIMITS)
+            ran = screened["n"]
+            monkeypatch.setattr(api, "screening_needed", lambda *a, **k: Consistency(True))
+            always = solve(vehicle, bad, method, weighting=weighting, limits=NO_LIMITS)
+            assert gated.ok == always.ok and gated.dropped_tags == always.dropped_tags, (method, size)
+            if any("disagree" in d["reason"] for d in always.dropped_tags):
+                assert ran == 1, (method, size)
+            drops += bool(always.dropped_tags)
+            if always.ok:
+                s = np.sqrt(np.diag(always.covariance))
+                assert np.all(np.abs(pose_error(gated, always.pose())) <= 0.02 * s), (method, size)
+    assert drops >= 0.5 * frames * len(ALL)
+
+
+def test_a_clean_two_tag_solve_fits_once_and_skips_the_screening(monkeypatch):
+    """A consistent frame (nearly every one) pays for one fit of its tags: no leave-one-out fits, no
+    own fits (the level solver's misfit weights read their prediction), the screening not run."""
+    import toptag.solvers.api as api
+    from toptag.solvers.level import SubsetFits
+
+    counts = {"screen": 0, "subset fits": 0}
+    real_screen, real_batch = api.screen_outliers, SubsetFits._fit_batch
+
+    def screen(*args, **kwargs):
+        counts["screen"] += 1
+        return real_screen(*args, **kwargs)
+
+    def batch(self, keys):
+        counts["subset fits"] += len(keys)
+        return real_batch(self, keys)
+
+    monkeypatch.setattr(api, "screen_outliers", screen)
+    monkeypatch.setattr(SubsetFits, "_fit_batch", batch)
+    rng = np.random.default_rng(34)
+    vehicle = bundled_vehicle("bus_double")
+    for i in range(20):
+        obs = observe_edges(vehicle, at_distance(rng.uniform(8, 20), rng.uniform(0.5, 1.1), rng.uniform(-3, 3)),
+                            rng=rng)
+        assert len(obs) == 2
+        for method, joint_fits in (("level", 1), ("hopt", 0), ("sopt", 0)):
+            counts.update({"screen": 0, "subset fits": 0})
+            assert solve(vehicle, obs, method, weighting="principled").ok
+            assert counts == {"screen": 0, "subset fits": joint_fits}, (i, method, counts)

@@ -18,6 +18,7 @@ from toptag.solvers.robust import (
     implausibility,
     screen_outliers,
     screening_fits,
+    screening_needed,
 )
 from toptag.solvers.sopt import HEIGHT_MODELS, WEIGHTINGS, fit_sopt
 from toptag.vehicle import Vehicle
@@ -92,28 +93,44 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
     noise_model = turn_ratio
     # Hopeless data (garbage corners) produce infinities on the way to an ok=False; not worth warnings.
     with np.errstate(all="ignore"):
-        keep, screened = list(range(len(corners.units))), None
+        keep, screened, linear, first = list(range(len(corners.units))), None, None, None
         if robust and len(corners.units) >= 2:
             try:
                 screened = screening_fits(corners, h, sigma_px, sigma_h, noise_model)
-                keep, outliers = screen_outliers(corners, h, sigma_px, sigma_h, limits.outlier_alpha, calib=calib,
-                                                 turn_ratio=noise_model, fits=screened)
+                # A consistent frame (nearly every one) is told from one fit of every tag: the level
+                # solver's joint fit, the others' H.Opt. (layout) fit.
+                about = None
+                if method != "level":
+                    first = _fit(method, corners, h, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h,
+                                 mu=mu, height_model=height_model, calib=calib, layout_only=True)
+                    ev = first[1].level_evaluation if first is not None else None
+                    if ev is not None:
+                        about = screened.evaluated(first[1].theta[[0, 1, 2, 3]], *ev)
+                linear = screening_needed(corners, screened, sigma_px, sigma_h, limits.outlier_alpha,
+                                          turn_ratio=noise_model, about=about)
+                if linear.needed:
+                    keep, outliers = screen_outliers(corners, h, sigma_px, sigma_h, limits.outlier_alpha,
+                                                     calib=calib, turn_ratio=noise_model, fits=screened)
+                    dropped += outliers
             except (np.linalg.LinAlgError, FloatingPointError, ValueError) as e:
                 return _failed(method, corners, dropped, f"solver failed: {e}")
-            dropped += outliers
         try:
             if method == "level":
                 fit, misfits = solve_level_corners(corners, keep, h, sigma_h=sigma_h, sigma_px=sigma_px, calib=calib,
                                                    turn_ratio=turn_ratio, fits=screened if robust else None,
                                                    weigh_misfits=robust, calib_alpha=limits.outlier_alpha,
-                                                   bias=detector_bias)
+                                                   bias=detector_bias,
+                                                   linear=None if linear is None or linear.needed else linear)
                 dropped += misfits
                 fits = None if fit is None else (fit, fit)
             else:
-                yaw0 = screened.yaw_of(keep) if screened is not None else None
-                corners = corners.subset(keep) if len(keep) < len(corners.units) else corners
+                if len(keep) < len(corners.units) or first is None:
+                    yaw0 = screened.yaw_of(keep) if screened is not None else None
+                    corners = corners.subset(keep) if len(keep) < len(corners.units) else corners
+                    first = None
                 fits = _fit(method, corners, h, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
-                            height_model=height_model, calib=calib, yaw0=yaw0)
+                            height_model=height_model, calib=calib, yaw0=yaw0 if first is None else None,
+                            done=first)
         except (np.linalg.LinAlgError, FloatingPointError, ValueError) as e:
             return _failed(method, corners, dropped, f"solver failed: {e}")
         if fits is None:
@@ -133,21 +150,27 @@ def solve(vehicle: Vehicle, observations: list[TagObservation], method: str = "s
 
 
 def _fit(method: str, c: Corners, h: float, *, weighting, sigma_px, sigma_h, mu,
-         height_model, calib: Calibration, yaw0: float | None = None) -> tuple[Fit, Fit] | None:
+         height_model, calib: Calibration, yaw0: float | None = None, layout_only: bool = False,
+         done: tuple[Fit, Fit] | None = None) -> tuple[Fit, Fit] | None:
     """(the method's fit, the H.Opt. fit that judges the corners against the tag layout). yaw0: H.Opt.'s
-    starting yaw when the outlier test's level fits already found one; else Bas.'s (SPEC). Either start
-    leads H.Opt. to the same minimum; the level fit's is nearer and costs nothing more."""
-    if method == "bas" or yaw0 is None:
-        bas = fit_bas(c, sigma_px, covariance=(method == "bas"))
-        yaw0 = float(bas.theta[2]) if bas.converged and np.all(np.isfinite(bas.theta)) else None
-    start = initial_pose(c, h, yaw0)
-    if start is None:
-        return None
-    hopt = fit_hopt(c, h, start, sigma_px, sigma_h, calib)
-    if method == "bas":
+    starting yaw when the outlier test's level fits already found one; else Bas.'s for Bas. (SPEC), and
+    for the others the planar fit of the back-projected corners (initial_pose), which costs a fraction
+    of Bas.'s; every start leads H.Opt. to the same minimum. layout_only: Bas. and H.Opt. only (S.Opt.'s
+    fit left for `done`: what an earlier call returned on the same corners)."""
+    if done is not None:
+        bas, hopt = done
+    else:
+        if method == "bas":
+            bas = fit_bas(c, sigma_px, covariance=True)
+            yaw0 = float(bas.theta[2]) if bas.converged and np.all(np.isfinite(bas.theta)) else None
+        start = initial_pose(c, h, yaw0)
+        if start is None:
+            return None
+        hopt = fit_hopt(c, h, start, sigma_px, sigma_h, calib)
+        if method != "bas":
+            bas = hopt
+    if method in ("bas", "hopt") or layout_only:
         return bas, hopt
-    if method == "hopt":
-        return hopt, hopt
     sopt = fit_sopt(c, h, hopt.theta, weighting=weighting, sigma_px=sigma_px, sigma_h=sigma_h, mu=mu,
                     height_model=height_model, calib=calib)
     return sopt, hopt

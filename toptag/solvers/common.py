@@ -108,6 +108,10 @@ class Fit:
     # their uncertainty is given): cameras that disagree by their calibration error are not bad corners.
     calib_rms_px: float = 0.0
     note: str | None = None  # why the fit is not usable, if the solver itself knows
+    # The level model at theta, when the solver evaluated it there (H.Opt.): raw pixel residuals (2N,),
+    # their Jacobian (2N, 4) over (x, y, yaw, z) and every corner in front (N,). The outlier test
+    # linearises around it instead of fitting again.
+    level_evaluation: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def solution(self) -> PoseSolution:
         t = self.theta

@@ -74,7 +74,8 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
     res = levenberg_marquardt_batch(normal, np.asarray(start, dtype=float)[None])
     p = res.theta[0]
     converged = bool(res.converged[0])
-    r_px, J4, in_front = res.extra[0][0], res.extra[1][0], bool(res.extra[2][0].all())
+    r_px, J4, front = res.extra[0][0], res.extra[1][0], res.extra[2][0]
+    in_front = bool(front.all())
     theta = planar_theta(p[0], p[1], p[2], h)
     J = J4[:, PLANAR]
     N_inv = safe_inverse(J.T @ J)
@@ -97,4 +98,4 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
         note = "H.Opt. did not converge"
     return Fit("hopt", theta, cov, rms(r_px), sigma, c, converged=converged and in_front,
                dof=2 * c.n - 3, fit_rms_px=rms(r_px), height_rms_px=height_rms, calib_rms_px=calib_rms,
-               note=note)
+               note=note, level_evaluation=(r_px, J4, front))

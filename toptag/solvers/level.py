@@ -95,6 +95,7 @@ NO_BIAS = DetectorBias()
 DETECTOR_BIAS = DetectorBias(edge_common=0.03, edge_tag=0.0, image_shift=0.05)
 MISFIT_FACTOR = 5.0  # a tag's misfit up to this many times the best tag's is as good as it (see below)
 MISFIT_POWER = 4.0  # beyond, its residuals count (MISFIT_FACTOR·r_min / r_k)^MISFIT_POWER as much
+MISFIT_MARGIN = 0.8  # linearised own misfits within this fraction of MISFIT_FACTOR: every weight is 1
 MISFIT_DROP_WEIGHT = 0.1  # below (a misfit 9x the best tag's), the tag is left out and reported
 MAX_ROUNDS = 3  # sigma estimated from the fit, the fit redone with it, until it changes by < 10 %
 POSE = [IX, IY, IYAW, IZ]
@@ -383,6 +384,17 @@ class SubsetFit:
         return self.source.subset(self.units)
 
 
+@dataclass
+class LinearFits:
+    """SubsetFits.linear_fits: B subset fits predicted from one evaluation."""
+
+    p: np.ndarray  # (B, n_p)
+    r_white: np.ndarray  # (B, 2N) every corner's whitened residual at each fit's pose
+    ss: np.ndarray  # (B,) each fit's whitened residual sum of squares over its own rows
+    dof: np.ndarray  # (B,) NaN where the subset does not determine the pose
+    JtJ: np.ndarray  # (B, n_p, n_p) its own rows' whitened normal matrix
+
+
 class SubsetFits:
     """Level fits of subsets of c's units (by index in c), each computed once: the outlier test's
     leave-one-out fits and the misfit weights' one-tag fits are often the same ones, and those wanted
@@ -499,6 +511,37 @@ class SubsetFits:
                                  converged[b], r_all[b], J_all[b], front[b], H[b]))
         return out
 
+    def evaluated(self, pose, r_px: np.ndarray, J_px: np.ndarray, front: np.ndarray) -> SubsetFit:
+        """Every unit at a level pose (x, y, yaw, z) some solver evaluated the model at (raw pixel
+        residuals (2N,), Jacobian (2N, 4), in front (N,)), as a SubsetFit to linearise about."""
+        n_p = 4 if self.sigma_h > 0 else 3
+        r_all, J_all = self.T @ r_px, self.T @ J_px
+        key = tuple(range(len(self.c.units)))
+        return SubsetFit(key, self.c, np.asarray(pose[:n_p], dtype=float), planar_theta(*pose[:4]), r_all,
+                         J_all[:, :n_p], math.nan, True, r_all, J_all, np.asarray(front, dtype=bool))
+
+    def linear_fits(self, about: SubsetFit, masks: np.ndarray, sigma_w: float | None = None) -> "LinearFits":
+        """The fits of B subsets of the units (masks (B, 2N) of 0/1 over the residual rows) as one
+        Gauss–Newton step each from `about` (a pose with every corner's whitened residuals and Jacobian)
+        predicts them: no model evaluation, a few stacked matrix products for all of them. Exact for a
+        linear model, and within a small fraction of sigma of the real fits near a consistent frame's
+        optimum. sigma_w: the pixels weighed with this whitened sigma instead of the fits' own."""
+        n_p, s2 = len(about.p), (self.sigma_w if sigma_w is None else sigma_w) ** 2
+        r, J = about.all_r_white, about.all_J_white[:, :n_p]
+        Jm = J[None] * masks[..., None]
+        JtJ = np.swapaxes(Jm, 1, 2) @ J
+        H = JtJ / s2
+        g = np.swapaxes(Jm, 1, 2) @ r / s2
+        if n_p == 4:  # the roof-height prior
+            H[:, 3, 3] += 1.0 / self.sigma_h ** 2
+            g[:, 3] += (about.p[3] - self.h) / self.sigma_h ** 2
+        H_inv = safe_inverse(H)
+        determined = np.isfinite(H_inv).all(axis=(1, 2))
+        step = -np.einsum("bij,bj->bi", np.where(determined[:, None, None], H_inv, 0.0), g)
+        r_new = r + step @ J.T
+        dof = np.where(determined, masks.sum(axis=1) - np.einsum("bij,bji->b", H_inv, JtJ) / s2, np.nan)
+        return LinearFits(about.p + step, r_new, ((r_new * r_new) * masks).sum(axis=1), dof, JtJ)
+
     def _fit_calibrated(self, k: int, calib: Calibration) -> SubsetFit | None:
         """Unit k alone with its camera's uncertain extrinsic corrections as unknowns."""
         sub = self.c.subset([k])
@@ -551,16 +594,24 @@ def misfit_weights(fits: SubsetFits, units: list[int], floor_w: float,
     freedom each) differ by 3× one time in ten; a garbled tag's is (measured) 15–2000× the best."""
     if not calib.rot_sigma > 0:
         fits.prepare([(k,) for k in units])
+    own = [fits.own(k, calib) for k in units]
+    return misfit_weights_of([float(f.r_white @ f.r_white) if f is not None and f.converged else math.nan
+                              for f in own], [len(f.r_white) if f is not None else 1 for f in own],
+                             [f.dof if f is not None else math.nan for f in own], floor_w)
+
+
+def misfit_weights_of(ss_own: list[float], n_own: list[int], dof_own: list[float],
+                      floor_w: float) -> tuple[np.ndarray, float | None, np.ndarray]:
+    """misfit_weights from each unit's own fit's whitened residual sum of squares, its number of
+    residuals and its degrees of freedom (NaN: the unit could not be fitted alone)."""
     own, ss, dof = [], [], []  # a few floats per unit: plain Python
-    for k in units:
-        f = fits.own(k, calib)
-        if f is None or not f.converged:
+    for ss_k, n_k, dof_k in zip(ss_own, n_own, dof_own):
+        if math.isnan(ss_k) or math.isnan(dof_k):
             own.append(math.nan)
             continue
-        ss_k = float(f.r_white @ f.r_white)
-        own.append(math.sqrt(ss_k / len(f.r_white)))
+        own.append(math.sqrt(ss_k / n_k))
         ss.append(ss_k)
-        dof.append(max(f.dof, 0.0))
+        dof.append(max(dof_k, 0.0))
     if not ss:
         return np.ones(len(units)), None, np.array(own)
     ref = max(min(r for r in own if not math.isnan(r)), floor_w)
@@ -652,29 +703,42 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
 def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float, sigma_px: float | None,
                         calib: Calibration, turn_ratio: float | None, fits: SubsetFits | None,
                         weigh_misfits: bool = True, calib_alpha: float = 1e-3,
-                        bias: DetectorBias = NO_BIAS) -> tuple[Fit | None, list[dict]]:
+                        bias: DetectorBias = NO_BIAS, linear=None
+                        ) -> tuple[Fit | None, list[dict]]:
     """The level solver on c's units `keep` (those that passed the outlier test, whose fits on c it
     reuses): misfit weights from each unit's own fit, then the joint fit. Returns the fit (None when no
     start is found) and the units left out because their weight fell below MISFIT_DROP_WEIGHT
-    ({"tag", "camera", "reason"})."""
+    ({"tag", "camera", "reason"}).
+    linear: robust.screening_needed's verdict when it found every unit consistent without fitting them
+    one by one: the own fits' misfits are then its predictions, unless one unit's comes within
+    MISFIT_MARGIN of weighing it down (then they are fitted), and the joint fit starts from the pose
+    it linearised about."""
     scale = noise_scale(turn_ratio)
-    weights, sigma0_w, dropped = None, None, []
+    weights, sigma0_w, dropped, start = None, None, [], None
     keep = list(keep)
     if len(keep) >= 2 and weigh_misfits:
         if fits is None or fits.turn_ratio != turn_ratio or fits.c is not c:
             sigma_w = sigma_px / scale if sigma_px is not None else SIGMA_PRIOR_PX / scale
             fits = SubsetFits(c, h, sigma_h, turn_ratio, sigma_w)
-        weights, sigma0_w, ratio = misfit_weights(fits, keep, SIGMA_FLOOR_PX / scale, calib)
-        out = weights < MISFIT_DROP_WEIGHT
-        if out.any():
-            for k, r in zip(np.array(keep)[out], ratio[out]):
-                unit = c.units[int(k)]
-                dropped.append({"tag": unit.tag_id, "camera": unit.camera.id,
-                                "reason": f"corners misfit the tag's shape ({r:.0f}x the best tag's residual)"})
-            keep = [k for k, o in zip(keep, out) if not o]
-            weights = weights[~out]
+        if linear is not None and calib.known and keep == list(range(len(c.units))):
+            _, sigma0_w, ratio = misfit_weights_of(linear.own_ss, [8] * len(keep), linear.own_dof,
+                                                   SIGMA_FLOOR_PX / scale)
+            if np.all(ratio <= MISFIT_MARGIN * MISFIT_FACTOR):  # every weight 1 (False for a NaN)
+                # The joint fit the verdict is about, moved to the weighting with sigma0_w by one step.
+                start = fits.linear_fits(linear.about, np.ones((1, 2 * c.n)), sigma0_w).p[0]
+        if start is None:
+            weights, sigma0_w, ratio = misfit_weights(fits, keep, SIGMA_FLOOR_PX / scale, calib)
+            out = weights < MISFIT_DROP_WEIGHT
+            if out.any():
+                for k, r in zip(np.array(keep)[out], ratio[out]):
+                    unit = c.units[int(k)]
+                    dropped.append({"tag": unit.tag_id, "camera": unit.camera.id,
+                                    "reason": f"corners misfit the tag's shape ({r:.0f}x the best tag's residual)"})
+                keep = [k for k, o in zip(keep, out) if not o]
+                weights = weights[~out]
     kept = c if keep == list(range(len(c.units))) else c.subset(keep)
-    start = _combined_start(fits, keep, weights) if fits is not None and calib.known else None
+    if start is None and fits is not None and calib.known:
+        start = _combined_start(fits, keep, weights)
     if start is None:
         start = initial_pose(kept, h, None)
     if start is None:

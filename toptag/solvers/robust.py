@@ -36,7 +36,7 @@ import numpy as np
 from scipy import stats
 
 from toptag.solvers.common import SIGMA_PRIOR_PX, Fit, safe_inverse
-from toptag.solvers.level import SubsetFits, noise_scale
+from toptag.solvers.level import SubsetFit, SubsetFits, noise_scale
 from toptag.solvers.model import (
     KNOWN,
     MIN_DEPTH,
@@ -81,6 +81,59 @@ def screening_fits(c: Corners, h: float, sigma_px: float | None, sigma_h: float,
     scale = noise_scale(turn_ratio)
     sigma_w = (sigma_px if sigma_px is not None else SCREEN_PRIOR_PX) / scale
     return SubsetFits(c, h, sigma_h, turn_ratio, sigma_w)
+
+
+# A frame is screened for real when any tag's linearised statistic reaches this fraction of its
+# threshold: the linearisation is off by far less near a consistent frame's optimum, so every frame the
+# test could drop a tag from is screened (and a garbled tag's statistic is many times its threshold).
+SCREEN_MARGIN = 0.5
+
+
+@dataclass
+class Consistency:
+    """screening_needed's verdict on a frame, and what the level solver reads from it when no tag could
+    be dropped: the pose it was judged about and each unit's own fit, predicted (whitened residual sum
+    of squares and degrees of freedom, NaN where a unit alone does not determine the pose)."""
+
+    needed: bool
+    about: SubsetFit | None = None
+    own_ss: list[float] | None = None
+    own_dof: list[float] | None = None
+
+
+def screening_needed(c: Corners, fits: SubsetFits, sigma_px: float | None, sigma_h: float, alpha: float = 1e-3, *,
+                     turn_ratio: float | None = None, about: SubsetFit | None = None) -> Consistency:
+    """Whether screen_outliers could drop a tag of c, judged without its leave-one-out fits: those fits
+    predicted from one fit of every tag (`about`: a level pose with every corner's residual and
+    Jacobian; default the screening's own joint fit) by one Gauss–Newton step each
+    (SubsetFits.linear_fits), and their statistics d_k (without the calibration term, which only lowers
+    them) held against SCREEN_MARGIN times their thresholds. For a linear model the prediction is exact;
+    a clean frame's tags score far below (chi-square 8 against its 0.1 % quantile), a garbled tag's far
+    above."""
+    n_u = len(c.units)
+    if n_u < 2:
+        return Consistency(False)
+    if about is None:
+        about = fits.get(range(n_u))
+    if about is None or not about.converged or not about.all_in_front.all():
+        return Consistency(True)
+    rows = fits.rows(range(n_u)).reshape(n_u, -1)  # each unit's residual rows
+    alone = np.zeros((n_u, 2 * c.n))
+    alone[np.arange(n_u)[:, None], rows] = 1.0
+    # Leave-one-out masks, then (three units or more) each unit alone; with two, each alone is the
+    # other's leave-one-out.
+    lin = fits.linear_fits(about, 1.0 - alone if n_u == 2 else np.vstack([1.0 - alone, alone]))
+    n_p = lin.p.shape[1]
+    e = np.take_along_axis(lin.r_white[:n_u], rows, axis=1)
+    Jk = about.all_J_white[rows][..., :n_p]
+    S, H_inv, _, thr = _loo_covariance(Jk, lin.JtJ[:n_u], lin.ss[:n_u], lin.dof[:n_u], sigma_px, sigma_h,
+                                    turn_ratio, alpha)
+    d = _mahalanobis(e, S)
+    finite = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
+    if not all(f and d_k <= SCREEN_MARGIN * t for f, d_k, t in zip(finite, d, thr)):  # False for a NaN
+        return Consistency(True)
+    own = slice(None, None, -1) if n_u == 2 else slice(n_u, None)
+    return Consistency(False, about, lin.ss[own].tolist(), lin.dof[own].tolist())
 
 
 def screen_outliers(c: Corners, h: float, sigma_px: float | None, sigma_h: float, alpha: float = 1e-3, *,
@@ -148,21 +201,10 @@ def _loo_statistics(c: Corners, fits: SubsetFits, keep: list[int], sigma_px: flo
     n_p = items[0][2].J_white.shape[1]
     Jk = np.stack([rest.all_J_white[rows][:, :n_p] for _, _, rest, rows in items])
     G = np.stack([rest.J_white for _, _, rest, _ in items])
-    m = e.shape[1]
-    scale = noise_scale(turn_ratio)
-    if sigma_px is not None:
-        s2 = np.full(len(items), (sigma_px / scale) ** 2)
-        thr = [_threshold(alpha, m, None)] * len(items)
-    else:
-        ss = np.array([float(rest.r_white @ rest.r_white) for _, _, rest, _ in items])
-        dof = np.array([max(rest.dof, 0.0) for _, _, rest, _ in items])
-        s2 = (ss + PRIOR_DOF * (SCREEN_PRIOR_PX / scale) ** 2) / (dof + PRIOR_DOF)
-        thr = [_threshold(alpha, m, int(math.floor((d + PRIOR_DOF) * 10))) for d in dof.tolist()]
-    H = np.swapaxes(G, 1, 2) @ G / s2[:, None, None]
-    if n_p == 4:
-        H[:, 3, 3] += 1.0 / sigma_h ** 2
-    H_inv = safe_inverse(H)
-    S = s2[:, None, None] * np.eye(m) + Jk @ H_inv @ np.swapaxes(Jk, 1, 2)
+    ss = np.array([float(rest.r_white @ rest.r_white) for _, _, rest, _ in items])
+    dof = np.array([rest.dof for _, _, rest, _ in items])
+    S, H_inv, s2, thr = _loo_covariance(Jk, np.swapaxes(G, 1, 2) @ G, ss, dof, sigma_px, sigma_h, turn_ratio,
+                                        alpha)
     if not calib.known:
         for j, (_, k, rest, _) in enumerate(items):
             ck = c.subset([k])
@@ -172,19 +214,49 @@ def _loo_statistics(c: Corners, fits: SubsetFits, keep: list[int], sigma_px: flo
             Gc = Jc_k - Jk[j] @ (H_inv[j] @ (G[j].T @ Jc_rest) / s2[j])
             S[j] += (Gc * np.tile(calib.sigmas ** 2, len(cam_ids))) @ Gc.T
     finite = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
-    try:
-        d = np.einsum("ki,ki->k", e, np.linalg.solve(S, e[..., None])[..., 0]).tolist()
-    except np.linalg.LinAlgError:  # one singular S: each on its own
-        d = [math.nan] * len(items)
-        for j in range(len(items)):
-            try:
-                d[j] = float(e[j] @ np.linalg.solve(S[j], e[j]))
-            except np.linalg.LinAlgError:
-                pass
+    d = _mahalanobis(e, S)
     for j, (i, _, _, _) in enumerate(items):
         if finite[j] and not math.isnan(d[j]):
             out[i] = (d[j], thr[j])
     return out
+
+
+def _loo_covariance(Jk: np.ndarray, GtG: np.ndarray, ss: np.ndarray, dof: np.ndarray, sigma_px: float | None,
+                    sigma_h: float, turn_ratio: float | None,
+                    alpha: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[float]]:
+    """For K left-out units: the covariance S_k (K, m, m) of each one's prediction error from the rest's
+    fit (whitened Jacobian Jk (K, m, n_p) of its rows, the rest's whitened normal matrix GtG (K, n_p,
+    n_p), residual sum of squares ss and degrees of freedom dof (K,)), without the calibration term; the
+    rest's parameter covariance H⁻¹ (K, n_p, n_p); the whitened noise variance it assumes (K,); and
+    d_k's thresholds."""
+    m = Jk.shape[1]
+    scale = noise_scale(turn_ratio)
+    if sigma_px is not None:
+        s2 = np.full(len(Jk), (sigma_px / scale) ** 2)
+        thr = [_threshold(alpha, m, None)] * len(Jk)
+    else:
+        dof = np.maximum(dof, 0.0)
+        s2 = (ss + PRIOR_DOF * (SCREEN_PRIOR_PX / scale) ** 2) / (dof + PRIOR_DOF)
+        thr = [_threshold(alpha, m, int(math.floor((d + PRIOR_DOF) * 10))) for d in dof.tolist()]
+    H = GtG / s2[:, None, None]
+    if Jk.shape[2] == 4:
+        H[:, 3, 3] += 1.0 / sigma_h ** 2
+    H_inv = safe_inverse(H)
+    return s2[:, None, None] * np.eye(m) + Jk @ H_inv @ np.swapaxes(Jk, 1, 2), H_inv, s2, thr
+
+
+def _mahalanobis(e: np.ndarray, S: np.ndarray) -> list[float]:
+    """e_kᵀ S_k⁻¹ e_k for each k (NaN where S_k is singular)."""
+    try:
+        return np.einsum("ki,ki->k", e, np.linalg.solve(S, e[..., None])[..., 0]).tolist()
+    except np.linalg.LinAlgError:  # one singular S: each on its own
+        d = [math.nan] * len(e)
+        for j in range(len(e)):
+            try:
+                d[j] = float(e[j] @ np.linalg.solve(S[j], e[j]))
+            except np.linalg.LinAlgError:
+                pass
+        return d
 
 
 def implausibility(fit: Fit, layout_fit: Fit, h: float, limits: Limits, sigma_px: float | None) -> str | None:
