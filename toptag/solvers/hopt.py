@@ -37,23 +37,22 @@ def initial_poses(c: Corners, h: float, masks: np.ndarray, yaw0: float | None = 
     """`initial_pose` of each subset of c's corners (masks (B, N) bool) at once: (B, 3), NaN where fewer
     than two of its corners back-project onto the plane z = h."""
     W = c.backprojected(h)
-    ok = np.all(np.isfinite(W), axis=1)
+    ok = np.isfinite(W[:, 0])
     m = np.asarray(masks, dtype=bool) & ok
     count = m.sum(axis=1)
     w = m / np.maximum(count, 1)[:, None]
-    W = np.where(ok[:, None], W, 0.0)
-    P = c.points
-    mw, mp = w @ W, w @ P  # (B, 3) mean back-projected and roof corner
+    # Points of the plane as complex numbers: the mean back-projected and roof corner of each subset.
+    W = np.where(ok, W[:, 0] + 1j * W[:, 1], 0.0)
+    P = c.points[:, 0] + 1j * c.points[:, 1]
+    mw, mp = w @ W, w @ P
     if yaw0 is None or not math.isfinite(yaw0):
-        # The planar rotation best mapping the roof corners onto the back-projected ones (2-D Kabsch).
-        a = P[None, :, :2] - mp[:, None, :2]
-        b = W[None, :, :2] - mw[:, None, :2]
-        yaw = np.arctan2(np.sum(w * (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]), axis=1),
-                         np.sum(w * (a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]), axis=1))
+        # The planar rotation best mapping the roof corners onto the back-projected ones (2-D Kabsch):
+        # the angle of sum w·conj(P − mp)·(W − mw).
+        rot = np.exp(1j * np.angle(w @ (np.conj(P) * W) - np.conj(mp) * mw))
     else:
-        yaw = np.full(len(m), float(yaw0))
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    out = np.column_stack([mw[:, 0] - (cy * mp[:, 0] - sy * mp[:, 1]), mw[:, 1] - (sy * mp[:, 0] + cy * mp[:, 1]), yaw])
+        rot = np.full(len(m), complex(math.cos(yaw0), math.sin(yaw0)))
+    origin = mw - rot * mp
+    out = np.column_stack([origin.real, origin.imag, np.angle(rot)])
     out[count < 2] = np.nan
     return out
 

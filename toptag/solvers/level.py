@@ -137,18 +137,24 @@ def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
         return np.broadcast_to(np.eye(8), (n_tags, 8, 8)).copy()
     u = q[:, [1, 2, 3, 0]] - q  # edge a: corner a -> a+1
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = u / np.linalg.norm(u, axis=2, keepdims=True)
-    # Edge a's offset (row 2a) is the mean of its two corners' moves along its normal (corners a and
-    # a+1, columns 2a.. and 2(a+1)..); its turn (row 2a+1) their difference, over turn_ratio.
+        u = u / np.sqrt((u * u).sum(axis=2, keepdims=True))
+    return (u[:, _EDGE_OF, _NORMAL_AXIS] @ _edge_map(turn_ratio)).reshape(n_tags, 8, 8)
+
+
+@functools.lru_cache(maxsize=8)
+def _edge_map(turn_ratio: float) -> np.ndarray:
+    """(32, 64): edge_blocks' entries from the 32 edge-direction components it uses. Edge a's offset (row
+    2a) is the mean of its two corners' moves along its normal (corners a and a+1, columns 2a.. and
+    2(a+1)..); its turn (row 2a+1) their difference, over turn_ratio. Then the offsets o, of covariance
+    s²(I + r² 11ᵀ) with r = TAG_RATIO, are whitened by I − (1 − 1/sqrt(1 + 4r²))·11ᵀ/4."""
     scale = _EDGE_SIGN / 2.0 * np.where(_EDGE_ROWS % 2, 1.0 / turn_ratio, 1.0)
-    B = np.zeros((n_tags, 8, 8))
-    B[:, _EDGE_ROWS, _EDGE_COLS] = u[:, _EDGE_OF, _NORMAL_AXIS] * scale
-    if TAG_RATIO:
-        # Offsets o with covariance s²(I + r² 11ᵀ): whitened by I − (1 − 1/sqrt(1 + 4r²))·11ᵀ/4.
-        k = 1.0 - 1.0 / math.sqrt(1.0 + 4.0 * TAG_RATIO ** 2)
-        off = B[:, 0::2, :]
-        B[:, 0::2, :] = off - k * off.mean(axis=1, keepdims=True)
-    return B
+    k = 1.0 - 1.0 / math.sqrt(1.0 + 4.0 * TAG_RATIO ** 2) if TAG_RATIO else 0.0
+    rows = np.eye(8)
+    rows[0::2, 0::2] -= k / 4.0
+    out = np.zeros((32, 8, 8))
+    out[np.arange(32), :, _EDGE_COLS] = rows[:, _EDGE_ROWS].T * scale[:, None]
+    out.flags.writeable = False
+    return out.reshape(32, 64)
 
 
 def edge_whitener(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
@@ -244,19 +250,14 @@ class LevelProblem:
         return ev.r_px, J, ev.in_front
 
     @functools.cached_property
-    def _bias_patterns(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Raw pixel patterns of the detector's shared errors, one column each: every tag's outward edge
-        shift (2N, tags); which tags each camera holds (tags, cams); each camera's x then y image
-        shift (2N, 2·cams)."""
+    def _bias_patterns(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per tag-in-camera, in row order (build_corners keeps each one's 4 corners in consecutive rows):
+        the raw pixel pattern of its four edges moved outward (T, 8), and which camera holds it (T, cams)."""
         c = self.c
-        per_row = np.repeat(c.unit_of, 2)
-        units = (per_row[:, None] == np.arange(len(c.units))[None, :]) * _outward(c)[:, None]
         cam_ids = sorted({u.camera.id for u in c.units})
-        cam_of_unit = np.array([cam_ids.index(u.camera.id) for u in c.units])
-        in_cam = (cam_of_unit[:, None] == np.arange(len(cam_ids))[None, :]).astype(float)  # (tags, cams)
-        rows_cam = in_cam[per_row]  # (2N, cams)
-        axis = np.tile([1.0, 0.0], c.n)[:, None]
-        return units, in_cam, np.hstack([rows_cam * axis, rows_cam * (1.0 - axis)])
+        cam = [cam_ids.index(c.units[u].camera.id) for u in c.unit_of[::4].tolist()]
+        in_cam = (np.array(cam)[:, None] == np.arange(len(cam_ids))[None, :]).astype(float)
+        return _outward(c).reshape(-1, 8), in_cam
 
     def _edge_bias_cov(self, H_inv, Jw, d2, sigma) -> np.ndarray:
         """Covariance of p from the detector's shared corner errors (DetectorBias): the weighted fit's
@@ -265,10 +266,11 @@ class LevelProblem:
         if b == NO_BIAS:
             return 0.0
         gain = H_inv @ (Jw.T * d2) @ self.T / sigma  # p's response to a raw pixel residual change
-        units, in_cam, shifts = self._bias_patterns
-        G_tag = gain @ units  # (n_p, tags)
+        outward, in_cam = self._bias_patterns
+        g = gain.reshape(len(gain), len(outward), 8)  # (n_p, tags, 8)
+        G_tag = (g * outward).sum(axis=2)  # (n_p, tags)
         G_cam = G_tag @ in_cam  # each camera's common outward shift
-        G_img = gain @ shifts
+        G_img = (g.reshape(len(gain), len(outward), 4, 2).sum(axis=2).transpose(0, 2, 1) @ in_cam).reshape(len(gain), -1)
         return (b.edge_tag ** 2 * G_tag @ G_tag.T + b.edge_common ** 2 * G_cam @ G_cam.T
                 + b.image_shift ** 2 * G_img @ G_img.T)
 
@@ -282,7 +284,7 @@ class LevelProblem:
 
         def normal(ps):
             p = ps[0]
-            r_px, J_px, ok = self._pixels(p)
+            r_px, J_px, ok = self.pixels(p)
             r, J = A @ r_px, A @ J_px
             dp = prior2 * (p - offset)
             cost = float(r @ r + dp @ (p - offset)) if ok else math.inf
@@ -343,7 +345,7 @@ def _outward(c: Corners) -> np.ndarray:
     quad's diagonal, times sqrt 2). build_corners keeps each tag's four corners in consecutive rows."""
     q = c.pixels.reshape(-1, 4, 2)
     v = q - q.mean(axis=1, keepdims=True)
-    return (math.sqrt(2.0) * v / np.linalg.norm(v, axis=2, keepdims=True)).reshape(-1)
+    return (v * (math.sqrt(2.0) / np.sqrt((v * v).sum(axis=2, keepdims=True)))).reshape(-1)
 
 
 @dataclass
@@ -378,6 +380,8 @@ class SubsetFit:
     all_J_white: np.ndarray | None = None
     all_in_front: np.ndarray | None = None
     information: np.ndarray | None = None  # the fit's normal matrix (with the height prior), whitened sigma_w
+    all_r_px: np.ndarray | None = None  # all_r_white and all_J_white before whitening (raw pixels)
+    all_J_px: np.ndarray | None = None
 
     @functools.cached_property
     def corners(self) -> Corners:
@@ -484,10 +488,10 @@ class SubsetFits:
                 A[:, 3, 3] += 1.0 / self.sigma_h ** 2
                 g[:, 3] += dz
             cost[(~front & corner_mask).any(axis=1)] = np.inf
-            return cost, A, g, (r_all, J_all, front)
+            return cost, A, g, (r_all, J_all, front, r_px, J_px)
 
         res = levenberg_marquardt_batch(fun, p0)
-        r_all, J_all, front = res.extra
+        r_all, J_all, front, r_px, J_px = res.extra
         Jw = J_all[..., :n_p] * np.repeat(corner_mask, 2, axis=1)[..., None]
         JtJ = np.swapaxes(Jw, 1, 2) @ Jw
         H = JtJ / s_w ** 2
@@ -508,7 +512,7 @@ class SubsetFits:
             rows = self.rows(key)
             dof = len(rows) - trace[b] / s_w ** 2 if determined[b] else 0.0
             out.append(SubsetFit(key, c, res.theta[b], thetas[b], r_all[b, rows], J_all[b, rows, :n_p], dof,
-                                 converged[b], r_all[b], J_all[b], front[b], H[b]))
+                                 converged[b], r_all[b], J_all[b], front[b], H[b], r_px[b], J_px[b]))
         return out
 
     def evaluated(self, pose, r_px: np.ndarray, J_px: np.ndarray, front: np.ndarray) -> SubsetFit:
@@ -518,7 +522,8 @@ class SubsetFits:
         r_all, J_all = self.T @ r_px, self.T @ J_px
         key = tuple(range(len(self.c.units)))
         return SubsetFit(key, self.c, np.asarray(pose[:n_p], dtype=float), planar_theta(*pose[:4]), r_all,
-                         J_all[:, :n_p], math.nan, True, r_all, J_all, np.asarray(front, dtype=bool))
+                         J_all[:, :n_p], math.nan, True, r_all, J_all, np.asarray(front, dtype=bool),
+                         all_r_px=r_px, all_J_px=J_px)
 
     def linear_fits(self, about: SubsetFit, masks: np.ndarray, sigma_w: float | None = None) -> "LinearFits":
         """The fits of B subsets of the units (masks (B, 2N) of 0/1 over the residual rows) as one
@@ -624,7 +629,7 @@ def misfit_weights_of(ss_own: list[float], n_own: list[int], dof_own: list[float
 def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | None = None,
               calib: Calibration = KNOWN, turn_ratio: float | None = TURN_RATIO, unit_weights=None,
               sigma0_w: float | None = None, calib_alpha: float = 1e-3, bias: DetectorBias = NO_BIAS,
-              whitener: np.ndarray | None = None) -> Fit:
+              whitener: np.ndarray | None = None, at_minimum: tuple | None = None) -> Fit:
     """The weighted level-roof fit from start = (x, y, yaw) (or (x, y, yaw, z)). sigma_px: corner noise per
     coordinate if known.
     Else sigma0_w, when given, is the whitened noise the tags' own fits show (misfit_weights): the fit
@@ -636,15 +641,27 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
     A camera whose estimated extrinsic correction is beyond its calibration prior (chi-square above its
     1 − calib_alpha quantile; the estimate shrinks toward the prior, so an honest error stays below it
     at least that often) makes the fit unusable: the cameras disagree by more than their calibration.
-    whitener: edge_whitener(c.pixels, turn_ratio) when the caller has it already."""
+    whitener: edge_whitener(c.pixels, turn_ratio) when the caller has it already. at_minimum: the model at
+    start (raw pixel residuals, their Jacobian over the pose, all in front) when start is the minimum of
+    the fit's first weighting already (the caller solved it): no step is tried from there."""
     scale = noise_scale(turn_ratio)
     floor_w, prior_w = SIGMA_FLOOR_PX / scale, SIGMA_PRIOR_PX / scale
     prob = LevelProblem(c, h, sigma_h, calib, turn_ratio, unit_weights, whitener, bias=bias)
     known = sigma_px is not None
     p = prob.start(start)
+    if at_minimum is not None:
+        prob._evaluated = (p.tobytes(), at_minimum)
+
+    def minimise(p, sigma):
+        nonlocal at_minimum
+        if at_minimum is None:
+            return prob.minimise(p, sigma)
+        at_minimum, (r_px, J_px, _) = None, at_minimum
+        return LmResult(p, True, r_px, J_px)
+
     if known:
         sigma = sigma_cov = sigma_px / scale
-        res = prob.minimise(p, sigma)
+        res = minimise(p, sigma)
         p = res.theta
     elif sigma0_w is not None:
         # Weighed with the tags' own-shape noise, or with the joint fit's own when that is smaller (the
@@ -653,7 +670,7 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
         # not be explained away as pixel noise.
         sigma = sigma0_w
         for _ in range(MAX_ROUNDS):
-            res = prob.minimise(p, sigma)
+            res = minimise(p, sigma)
             p = res.theta
             if not np.all(np.isfinite(p)):
                 sigma_cov = sigma
@@ -666,7 +683,7 @@ def fit_level(c: Corners, h: float, start, *, sigma_h: float, sigma_px: float | 
     else:
         sigma = prior_w
         for _ in range(MAX_ROUNDS):  # sigma from the fit's own residuals, the fit redone with it
-            res = prob.minimise(p, sigma)
+            res = minimise(p, sigma)
             p = res.theta
             if not np.all(np.isfinite(p)):
                 break
@@ -714,7 +731,7 @@ def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float
     MISFIT_MARGIN of weighing it down (then they are fitted), and the joint fit starts from the pose
     it linearised about."""
     scale = noise_scale(turn_ratio)
-    weights, sigma0_w, dropped, start = None, None, [], None
+    weights, sigma0_w, dropped, start, at_minimum = None, None, [], None, None
     keep = list(keep)
     if len(keep) >= 2 and weigh_misfits:
         if fits is None or fits.turn_ratio != turn_ratio or fits.c is not c:
@@ -724,8 +741,13 @@ def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float
             _, sigma0_w, ratio = misfit_weights_of(linear.own_ss, [8] * len(keep), linear.own_dof,
                                                    SIGMA_FLOOR_PX / scale)
             if np.all(ratio <= MISFIT_MARGIN * MISFIT_FACTOR):  # every weight 1 (False for a NaN)
-                # The joint fit the verdict is about, moved to the weighting with sigma0_w by one step.
-                start = fits.linear_fits(linear.about, np.ones((1, 2 * c.n)), sigma0_w).p[0]
+                # The joint fit the verdict is about, moved to the weighting with sigma0_w by one
+                # Gauss-Newton step, the model there predicted along it (no evaluation).
+                a = linear.about
+                weigh = sigma_px / scale if sigma_px is not None else sigma0_w  # as fit_level weighs first
+                start = fits.linear_fits(a, np.ones((1, 2 * c.n)), weigh).p[0]
+                J = a.all_J_px[:, :len(start)]
+                at_minimum = (a.all_r_px + J @ (start - a.p), J, bool(a.all_in_front.all()))
         if start is None:
             weights, sigma0_w, ratio = misfit_weights(fits, keep, SIGMA_FLOOR_PX / scale, calib)
             out = weights < MISFIT_DROP_WEIGHT
@@ -747,4 +769,4 @@ def solve_level_corners(c: Corners, keep: list[int], h: float, *, sigma_h: float
     whitener = fits.whitener(keep) if fits is not None and fits.c is c and fits.turn_ratio == turn_ratio else None
     return fit_level(kept, h, start, sigma_h=sigma_h, sigma_px=sigma_px, calib=calib, turn_ratio=turn_ratio,
                      unit_weights=weights, sigma0_w=sigma0_w, calib_alpha=calib_alpha, bias=bias,
-                     whitener=whitener), dropped
+                     whitener=whitener, at_minimum=at_minimum), dropped
