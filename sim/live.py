@@ -76,11 +76,12 @@ class _Publishers:
 
 
 class SensorLoop(threading.Thread):
-    """IMU, ground truth and GNSS of every bus, each sample published as soon as its time has come."""
+    """IMU, ground truth and GNSS of every bus, each sample published as soon as its time has come, none
+    after `end_ns` (the run's end: a starved main loop may notice it late)."""
 
-    def __init__(self, world: World, pubs: _Publishers, stop: threading.Event):
+    def __init__(self, world: World, pubs: _Publishers, stop: threading.Event, end_ns: int | None = None):
         super().__init__(name="sim-sensors", daemon=True)
-        self.world, self.pubs, self.stop_event = world, pubs, stop
+        self.world, self.pubs, self.stop_event, self.end_ns = world, pubs, stop, end_ns
         self.counts: dict[str, int] = defaultdict(int)
         self.max_delay_ns = 0  # worst publish delay of an IMU sample behind its time, since last read
         self.error: BaseException | None = None
@@ -90,8 +91,8 @@ class SensorLoop(threading.Thread):
         step = NS_PER_S / w.scenario.imu_hz
         last = w.t0_ns - 1
         try:
-            while not self.stop_event.is_set():
-                now = time.time_ns()
+            while not self.stop_event.is_set() and (self.end_ns is None or last < self.end_ns):
+                now = time.time_ns() if self.end_ns is None else min(time.time_ns(), self.end_ns)
                 self.publish_until(last, now)
                 last = now
                 k = int(np.floor((now - w.t0_ns) / step)) + 1
@@ -153,7 +154,7 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
     # The clock that stamps each RSU's frames: the simulator's, exact, unless the scenario puts it off.
     clocks = [ClockInfo(source="sim", sync_uncertainty_ns=0) if f.clock_disciplined else ClockInfo(source="system")
               for f in world.faults]
-    sensors = SensorLoop(world, pubs, stop)
+    sensors = SensorLoop(world, pubs, stop, end)
     sensors.start()
     log.info("sim running: t0_ns=%d, %d RSUs at %s fps, buses %s, %s%s", t0, n,
              "/".join(f"{f:g}" for f in world.fps), ", ".join(world.bus_ids) or "(none)",
