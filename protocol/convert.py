@@ -35,7 +35,8 @@ def fix_to_message(fix: Fix, bus_id: str, intersection_id: str, publish_time_ns:
                    capture_time_ns=fix.t_ns, publish_time_ns=publish_time_ns, x=fix.x, y=fix.y, z=fix.z,
                    yaw=fix.yaw, covariance=fix.cov.tolist(), method=fix.method, tags_used=list(fix.tags),
                    reprojection_rms_px=fix.rms_px, frame_seq=fix.seq, processing_ns=processing_ns,
-                   ambiguous=fix.ambiguous, clock=clock)
+                   ambiguous=fix.ambiguous, clock=clock,
+                   calibration_covariance=None if fix.calib_cov is None else fix.calib_cov.tolist())
 
 
 def fix_from_message(m: PoseFix, arrival_ns: int | None = None) -> Fix:
@@ -44,7 +45,8 @@ def fix_from_message(m: PoseFix, arrival_ns: int | None = None) -> Fix:
     return Fix(t_ns=m.capture_time_ns, x=m.x, y=m.y, yaw=m.yaw, cov=m.covariance_matrix(), source=m.rsu_id,
                seq=m.frame_seq, arrival_ns=arrival_ns, z=m.z, method=m.method, tags=tuple(m.tags_used),
                rms_px=m.reprojection_rms_px, ambiguous=m.ambiguous,
-               clock_bound_ns=None if m.clock is None else m.clock.sync_uncertainty_ns)
+               clock_bound_ns=None if m.clock is None else m.clock.sync_uncertainty_ns,
+               calib_cov=m.calibration_covariance)
 
 
 def _ns_or_none(seconds: float) -> int | None:

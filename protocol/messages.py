@@ -231,6 +231,9 @@ class PoseFix(Message):
                                                        "covers both poses (added in v1, default false)")
     clock: ClockInfo | None = Field(default=None, description="the clock that stamped capture_time_ns "
                                                               "(None: not said, an unknown clock)")
+    calibration_covariance: Covariance3 | None = Field(
+        default=None, description="the share of covariance that the camera's calibration adds: common to every fix "
+                                  "of this camera, a constant bias (added in v1; None: none stated)")
 
     @property
     def measurement_delta_ns(self) -> int:

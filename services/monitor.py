@@ -364,6 +364,8 @@ def _trust_cells(r: dict) -> str:
     for bus, o in (r.get("time_offset_ms") or {}).items():
         if o["estimate"] is not None:
             cells.append(f"{bus} {o['estimate']:+.1f}±{o['sigma']:.1f} ms")
+        elif bus in r.get("flagged_by", ()):  # its bias passes for an offset: none is estimated while flagged
+            cells.append(f"{bus} excluded (flagged)")
     text = f" offset {', '.join(cells)}" if cells else ""
     if r.get("drift_flagged"):
         text += f" DRIFT ({','.join(r['flagged_by'])}: run toptag calibrate check)"

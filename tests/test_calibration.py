@@ -166,6 +166,7 @@ def test_fix_covariance_carries_the_camera_calibration():
     assert plain.ok and carried.ok and plain.x == pytest.approx(carried.x)
     added = carried.covariance - plain.covariance
     assert np.min(np.linalg.eigvalsh(added)) > -1e-12  # only ever adds uncertainty
+    assert np.allclose(pl.process(gray, 0).vehicles[bus.id].fix.calib_cov, added)  # the fix says which share
     # as much as the pose really moves when the camera is off by draws of that covariance (the same
     # corners re-solved with perturbed cameras)
     from toptag.detection import TagObservation

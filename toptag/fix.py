@@ -23,7 +23,10 @@ class Fix:
     when the bus received it (optional; feeds only the filter's health report). z (roof height, m),
     method (solver), tags (tag ids used) and rms_px (reprojection RMS) describe how it was made.
     clock_bound_ns: a bound on the offset of the clock that stamped t_ns (from the RSU's ClockInfo); None
-    when that clock is not known to be disciplined (the filter then expects a larger time offset)."""
+    when that clock is not known to be disciplined (the filter then expects a larger time offset).
+    calib_cov: the share of cov that the camera's calibration uncertainty adds (3x3; None: none stated).
+    It is in cov (a fix is never more certain than the camera that saw it), and it is common to every
+    fix of that camera: a constant bias, not noise (the bus's drift detector weighs it so)."""
     t_ns: int
     x: float
     y: float
@@ -38,6 +41,7 @@ class Fix:
     rms_px: float | None = None
     ambiguous: bool = False  # a lone tag whose mirrored pose fits as well: cov covers both (issue 11)
     clock_bound_ns: int | None = None
+    calib_cov: np.ndarray | None = None
 
     def __post_init__(self):
         self.t_ns = int(self.t_ns)
@@ -48,15 +52,19 @@ class Fix:
         self.seq = None if self.seq is None else int(self.seq)
         self.tags = tuple(int(t) for t in self.tags)
         self.clock_bound_ns = None if self.clock_bound_ns is None else int(self.clock_bound_ns)
+        if self.calib_cov is not None:
+            self.calib_cov = np.asarray(self.calib_cov, dtype=float).reshape(3, 3)
 
     @classmethod
-    def from_solution(cls, solution: PoseSolution, t_ns: int, source: str, seq: int | None = None) -> Fix:
-        """The fix a solver's (ok) solution of the frame captured at t_ns gives."""
+    def from_solution(cls, solution: PoseSolution, t_ns: int, source: str, seq: int | None = None,
+                      calib_cov: np.ndarray | None = None) -> Fix:
+        """The fix a solver's (ok) solution of the frame captured at t_ns gives; `calib_cov`: the share
+        of its covariance that the cameras' calibration added."""
         if not solution.ok:
             raise ValueError(f"no fix from a failed solution: {solution.error}")
         return cls(t_ns=t_ns, x=solution.x, y=solution.y, yaw=solution.yaw, cov=solution.covariance,
                    source=source, seq=seq, z=solution.z, method=solution.method, tags=tuple(solution.tags),
-                   rms_px=float(solution.rms_px), ambiguous=bool(solution.ambiguous))
+                   rms_px=float(solution.rms_px), ambiguous=bool(solution.ambiguous), calib_cov=calib_cov)
 
     @property
     def key(self) -> tuple:
@@ -86,5 +94,6 @@ class Fix:
     def replace(self, **change) -> Fix:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__}
         d["cov"] = self.cov.copy()
+        d["calib_cov"] = None if self.calib_cov is None else self.calib_cov.copy()
         d.update(change)
         return Fix(**d)

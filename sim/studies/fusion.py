@@ -19,6 +19,12 @@ Fix error model ("study"): per RSU, position noise sigma = 3 cm at the RSU growi
 at `range_m` (horizontal distance), 1.3x larger along the line of sight; yaw sigma 0.1° -> 0.2°;
 independent between fixes; the reported covariance is exactly the covariance of the noise. Healthy
 RSUs stamp with a disciplined clock (a 1 ms bound, chrony-grade).
+Calibration error (`--calib-deg DEG --calib-cm CM`, default 0: none): each RSU's camera really stands
+off its surveyed pose by a draw of sim.image_model.perturb_camera (DEG per camera axis, CM per world
+axis; one draw per RSU and run), so its every fix carries the same bias (sim.faults.seen_pose), and
+each fix states it as issue 12 wants: its covariance gains J Sigma_c J', J the pose's sensitivity to
+the camera's pose (finite differences of seen_pose, roof plane at the bus's height), and `calib_cov`
+says which share that is (toptag.fusion.trust weighs it as a constant bias).
 
 Faults (sim.faults, per RSU): `--clock-offset-ms RSU=MS` (its clock is off and says it is not
 disciplined), `--capture-latency-ms RSU=MS` (stamped on arrival of the frame), `--drift-deg
@@ -43,14 +49,16 @@ from pathlib import Path
 import numpy as np
 
 from sim.faults import RsuFault, describe, faults_from_options, seen_pose, turned
+from sim.image_model import ImageModel, perturb_camera
 from sim.motion import ImuModel, ImuSamples, Trajectory, bus_trajectory
 from sim.scene import rsu_camera, rsu_mounts
 from sim.studies import require_plotting
 from toptag.errors import InputError, SetupError, report
+from toptag.camera import Camera
 from toptag.fix import Fix
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.fusion.outcomes import applied_count
-from toptag.geometry import wrap_angle
+from toptag.geometry import rodrigues, wrap_angle
 from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.progress import Progress
 from toptag.units import NS_PER_MS, ns_from_ms, s_from_ns
@@ -63,9 +71,11 @@ TRUST_HZ = 5.0  # how often the fused filter's per-RSU assessments are sampled
 OFFSET_TOLERANCE_MS = 3.0
 FLAG_WITHIN_S = 10.0
 
-# The drift thresholds for this study's fix model, whose fixes carry no per-RSU bias: tighter than the
-# filter's defaults, which must stay above the live RSU pipeline's own bias (toptag eval livefix).
-STUDY_DRIFT_THRESHOLDS = {"drift_min_pos_m": 0.03, "drift_min_yaw_deg": 0.1}
+# The drift thresholds for this study's fix model, whose fixes carry no per-RSU bias but the calibration
+# error they state (FixErrorModel.calib_*): tighter than the filter's defaults, which allow for the live RSU
+# pipeline's own bias (toptag eval livefix).
+STUDY_DRIFT_THRESHOLDS = {"drift_min_pos_m": 0.03, "drift_min_yaw_deg": 0.1,
+                          "drift_bias_sigma_m": 0.0, "drift_bias_sigma_deg": 0.0}
 
 
 @dataclass(frozen=True)
@@ -78,6 +88,17 @@ class FixErrorModel:
     yaw_sigma_near_deg: float = 0.1
     yaw_sigma_far_deg: float = 0.2
     along_sight: float = 1.3  # sigma multiplier along the RSU's line of sight
+    calib_rot_sigma_deg: float = 0.0  # each camera's calibration error per camera axis (one draw per run)
+    calib_trans_sigma: float = 0.0  # and of its centre per world axis, m
+
+    @property
+    def calibrated(self) -> bool:
+        """Do the cameras carry a calibration error (and their fixes state it)?"""
+        return self.calib_rot_sigma_deg > 0 or self.calib_trans_sigma > 0
+
+    def calibration_covariance(self) -> np.ndarray:
+        """6x6 over (rotation about the camera axes, rad; centre, m): the camera file's convention."""
+        return np.diag([math.radians(self.calib_rot_sigma_deg) ** 2] * 3 + [self.calib_trans_sigma ** 2] * 3)
 
     def covariance(self, bus_xy: np.ndarray, rsu_xy: np.ndarray) -> np.ndarray:
         d_vec = bus_xy - rsu_xy
@@ -104,7 +125,12 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
     period = 1.0 / model.rate_hz
     for m in mounts:
         fault = faults.get(m.id, RsuFault())
-        surveyed = rsu_camera(m.id.removeprefix("rsu-")) if fault.drift is not None else None
+        calibrated = model.calibrated and fix_source is None
+        surveyed = rsu_camera(m.id.removeprefix("rsu-")) if fault.drift is not None or calibrated else None
+        actual = surveyed
+        if calibrated:  # drawn first, so a run's faulted and fault-free fixes share it
+            actual = perturb_camera(surveyed, ImageModel.ideal(calib_rot_sigma_deg=model.calib_rot_sigma_deg,
+                                                               calib_trans_sigma=model.calib_trans_sigma), rng)
         bound = HEALTHY_CLOCK_BOUND_NS if fault.clock_disciplined else None
         phase = rng.uniform(0.0, period)
         t = np.arange(phase, traj.duration, period)
@@ -123,15 +149,43 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
                 C = model.covariance(bus, m.position[:2])
                 n = np.linalg.cholesky(C) @ rng.standard_normal(3)
                 seen = (st.x[i], st.y[i], st.yaw[i])
+                camera = actual
                 if fault.drift is not None:
                     yaw, pitch = fault.drift.angles(float(t[i]))
-                    seen = seen_pose(surveyed, turned(surveyed, yaw, pitch), *seen, BUS_ROOF_Z)
+                    camera = turned(actual, yaw, pitch)
+                if camera is not surveyed:
+                    seen = seen_pose(surveyed, camera, *seen, BUS_ROOF_Z)
+                if calibrated:
+                    calib = calibration_share(surveyed, (st.x[i], st.y[i], st.yaw[i]), model.calibration_covariance())
+                    C = C + calib
+                if not (all(map(math.isfinite, seen)) and np.all(np.isfinite(C))):
+                    continue  # behind the camera: it cannot see there (the noise was drawn all the same)
                 pose = (seen[0] + n[0], seen[1] + n[1], wrap_angle(seen[2] + n[2]))
             fixes.append(Fix(traj.t_ns(t[i]) + fault.time_offset_ns, pose[0], pose[1], pose[2], C, m.id, seq,
-                             clock_bound_ns=bound))
+                             clock_bound_ns=bound, calib_cov=calib if calibrated else None))
             seq += 1
     fixes.sort(key=lambda f: f.t_ns)
     return fixes
+
+
+def calibration_share(surveyed: Camera, pose, cov6: np.ndarray) -> np.ndarray:
+    """3x3 covariance of the pose (x, y, yaw) an RSU reports for a roof at `pose`, from its camera's
+    calibration covariance cov6 (rotation about the camera axes, centre): J cov6 J', J by central
+    differences of seen_pose."""
+    J = np.zeros((3, 6))
+    steps = (1e-4,) * 3 + (1e-3,) * 3
+    for k, h in enumerate(steps):
+        out = []
+        for sgn in (1.0, -1.0):
+            dv = np.zeros(6)
+            dv[k] = sgn * h
+            R = rodrigues(dv[:3]) @ surveyed.R
+            cam = surveyed.with_extrinsics(R, -R @ (surveyed.center + dv[3:]))
+            out.append(np.array(seen_pose(surveyed, cam, *pose, BUS_ROOF_Z)))
+        diff = out[0] - out[1]
+        diff[2] = wrap_angle(diff[2])
+        J[:, k] = diff / (2 * h)
+    return J @ cov6 @ J.T
 
 
 @dataclass
@@ -602,6 +656,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera turns: DEG about the vertical at T s (a step) or over RAMP s from T, e.g. rsu-se=0.2@3")
     p.add_argument("--flagged", choices=("downweight", "refuse"), default=None,
                    help="what the filter does with a flagged RSU's fixes (default: the filter's, downweight)")
+    p.add_argument("--calib-deg", type=float, default=0.0, metavar="DEG",
+                   help="each RSU camera's calibration error per axis, deg (drawn once per RSU and run; "
+                        "its fixes state it); default 0")
+    p.add_argument("--calib-cm", type=float, default=0.0, metavar="CM",
+                   help="each RSU camera centre's calibration error per axis, cm; default 0")
+    p.add_argument("--calib-as-noise", action="store_true",
+                   help="the drift detector counts a fix's calibration share as noise, as it did before weighing it "
+                        "as each RSU's constant bias (for comparison)")
     p.add_argument("--fixes", default="study", choices=("study", "live"),
                    help="fix error model: the study's (default) or the live pipeline")
     p.add_argument("--plots", choices=("all", "trust", "none"), default="all",
@@ -632,10 +694,14 @@ def main(argv: list[str] | None = None) -> int:
                                                 f"(one or more of {', '.join(ROUTES)})"))
     try:
         faults = faults_from_options(a.clock_offset_ms, a.capture_latency_ms, a.drift_deg)
-        cfg = FilterConfig(**STUDY_DRIFT_THRESHOLDS, **({} if a.flagged is None else {"flagged_policy": a.flagged}))
+        if a.calib_deg < 0 or a.calib_cm < 0:
+            raise InputError("--calib-deg and --calib-cm must be >= 0")
+        cfg = FilterConfig(**STUDY_DRIFT_THRESHOLDS, drift_calibration_is_bias=not a.calib_as_noise,
+                           **({} if a.flagged is None else {"flagged_policy": a.flagged}))
+        fix_model = FixErrorModel(calib_rot_sigma_deg=a.calib_deg, calib_trans_sigma=a.calib_cm / 100)
         plots = False if a.no_plots or a.plots == "none" else ("trust" if a.plots == "trust" and faults else True)
         res = run(a.out, lats, a.jitter_ms, a.seed, runs=a.runs, n_rsu=a.rsus, route=a.route, plots=plots,
-                  faults=faults, config=cfg)
+                  faults=faults, config=cfg, fix_model=fix_model)
     except InputError as e:
         return report("eval fusion", e)
     print()

@@ -153,13 +153,28 @@ class FilterConfig(BaseModel):
     drift_window_s: float = Field(default=5.0, gt=0)  # time constant of the detector's forgetting
     drift_false_alarm: float = Field(default=1e-5, gt=0, lt=0.5)  # per test, chi-square 3 dof
     drift_clear_probability: float = Field(default=0.9, gt=0, lt=1)
-    # A smaller disagreement is not drift: the live RSU pipeline's own per-RSU bias reaches 3 cm / 0.13 deg
-    # (`toptag eval livefix`), and with 3 cm / 0.1 deg the demo flagged healthy RSUs. The fusion study's
-    # unbiased fix model uses tighter ones (sim.studies.fusion.STUDY_DRIFT_THRESHOLDS).
+    # A smaller disagreement is never drift (a floor under the test below). The fusion study's unbiased
+    # fix model uses tighter ones (sim.studies.fusion.STUDY_DRIFT_THRESHOLDS).
     drift_min_pos_m: float = Field(default=0.10, ge=0)
     drift_min_yaw_deg: float = Field(default=0.3, ge=0)
+    # A healthy RSU's constant bias (1 sigma per axis) beyond its fixes' stated calibration covariance:
+    # the test weighs a disagreement against it as against the noise (toptag.fusion.trust). The live RSU
+    # pipeline's own per-RSU bias on the demo's frames is up to 3 cm and 0.15 deg, RMS over the RSUs about
+    # 1.5 cm and 0.1 deg (`toptag eval livefix`, docs/time-and-trust.md).
+    drift_bias_sigma_m: float = Field(default=0.02, ge=0)
+    drift_bias_sigma_deg: float = Field(default=0.1, ge=0)
+    # A fix's calibration share (Fix.calib_cov) is its RSU's constant bias, not noise; False: counted as
+    # noise, as the detector did before (which flags a healthy RSU whose calibration is off within its
+    # stated uncertainty, given enough fixes).
+    drift_calibration_is_bias: bool = True
     drift_isolation_ratio: float = Field(default=2.0, ge=1)
     drift_min_fixes: float = Field(default=10.0, ge=1)  # effective number of fixes before a flag
+    # effective fixes another RSU needs in the window to be compared with (None: drift_min_fixes)
+    drift_min_other_fixes: float | None = Field(default=None, ge=1)
+    # An RSU's deviation from the others in one pass (one filter) adds to the next pass's for the same
+    # bus, fading with this time constant (0: each pass decides on its own): a busy machine's passes may
+    # each bring too few fixes to decide.
+    drift_past_window_s: float = Field(default=120.0, ge=0)
     drift_max_offset_sigma_ms: float = Field(default=10.0, gt=0)  # no flag while the RSU's offset is this uncertain
     drift_min_others: int = Field(default=2, ge=1)  # other RSUs seeing the bus meanwhile, to tell who is wrong
     # one fix's innovation counts at most this many sigmas (of its covariance plus the thresholds above)
@@ -232,7 +247,10 @@ class BusFilter:
         self._drift = DriftRule(c.drift_window_s, chi2_3dof(1.0 - c.drift_false_alarm),
                                 self._calm_stat, c.drift_min_pos_m,
                                 math.radians(c.drift_min_yaw_deg), c.drift_isolation_ratio, c.drift_clip_sigma ** 2,
-                                c.drift_min_fixes, c.drift_max_offset_sigma_ms * 1e-3, c.drift_min_others) \
+                                c.drift_min_fixes, c.drift_max_offset_sigma_ms * 1e-3, c.drift_min_others,
+                                np.diag([c.drift_bias_sigma_m ** 2, c.drift_bias_sigma_m ** 2,
+                                         math.radians(c.drift_bias_sigma_deg) ** 2]),
+                                c.drift_min_other_fixes, c.drift_past_window_s) \
             if c.drift_detection else None
         # RSUs remembered from a previous filter (their offsets and flags), in the start-up step.
         self._memory = MappingProxyType(dict(memory)) if memory else _NO_RSUS
@@ -734,10 +752,12 @@ class BusFilter:
             i = STATE_DIM + g.clocks.index(rsu)
             h, H[:, :5], Hd = pose_before(x, x[i], accel)
             H[:, i] = Hd
-            off_var = (Hd * Hd) * P[i, i]  # the offset's share of each predicted coordinate's variance
+            off_cov = np.outer(Hd, Hd) * P[i, i]  # the offset's share of the prediction's covariance
+            off_var = np.diag(off_cov).copy()
         else:
             h = x[:3]
             H[0, ST_X] = H[1, ST_Y] = H[2, ST_YAW] = 1.0
+            off_cov = None
             off_var = np.zeros(3)
         nu = fix.pose - h
         nu[2] = wrap_angle(nu[2])
@@ -758,11 +778,13 @@ class BusFilter:
             # pass for a disagreement between RSUs. The detector starts afresh (flags kept).
             g2 = g2._replace(rsus=MappingProxyType({k: r.restart() for k, r in g2.rsus.items()}))
         elif outcome is not FixOutcome.UNCONFIRMED and not (g.mode == ACQUIRING and not outcome.applied):
-            g2, flagged_now = self._observe(g2, fix, nu, HPHt, offset_before)
+            g2, flagged_now = self._observe(g2, fix, nu, HPHt, offset_before, off_cov)
             if flagged_now and not flagged:
                 x, P = self._distrust(x, P, i, g2.rsus[rsu], self._offset_prior(fix))
-                # The others were judged against a filter that followed this RSU: they start afresh.
-                g2 = g2._replace(rsus=MappingProxyType({k: (r if k == rsu else r.restart()) for k, r in g2.rsus.items()}))
+                # The others were judged against a filter that followed this RSU, and against this RSU:
+                # they start afresh, earlier passes' deviations too.
+                g2 = g2._replace(rsus=MappingProxyType({k: (r if k == rsu else r.restart(keep_past=False))
+                                                        for k, r in g2.rsus.items()}))
         return x, P, g2, outcome, d2, flagged
 
     def _gate(self, x, P, g: _Gate, fix: Fix, arrival_ns, H, nu, PHt, HPHt, off_var, rec, freeze):
@@ -821,22 +843,24 @@ class BusFilter:
             return x, P, applied, FixOutcome.REACQUIRED, d2
         return x, P, g._replace(consecutive=g.consecutive + 1, cands=cands), FixOutcome.REJECTED_GATE, d2
 
-    def _observe(self, g: _Gate, fix: Fix, nu, HPHt, offset_before) -> tuple[_Gate, bool]:
+    def _observe(self, g: _Gate, fix: Fix, nu, HPHt, offset_before, off_cov) -> tuple[_Gate, bool]:
         """The drift detector takes the fix's innovation (against the filter before the update, with
         the fix's own covariance: a down-weighting does not hide the disagreement) while the filter
-        is healthy; returns the gate and whether the RSU is flagged now. While its RSU agrees (its
-        statistic below the clearing level), its time offset before this fix is remembered as calm."""
+        is healthy; returns the gate and whether the RSU is flagged now. What every fix of the RSU
+        shares is its constant bias (toptag.fusion.trust), not noise: the fix's calibration share, and
+        what its time offset's uncertainty implies (`off_cov`: along the track; large while the offset
+        is being learnt, e.g. after a flag reset it to its prior)."""
         rsu = fix.source
         rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
         rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
-        agrees = rec.statistic() < self._calm_stat
-        if offset_before is not None and not rec.flagged and agrees:
-            rec = rec._replace(calm_offset=offset_before)
         rsus = dict(g.rsus)
         healthy = g.mode == TRACKING and g.last_accept_ns is not None and \
             fix.t_ns - g.last_accept_ns <= self._healthy_ns
         if self._drift is not None and healthy:
-            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, HPHt + fix.cov)
+            calib = fix.calib_cov if self.cfg.drift_calibration_is_bias else None
+            S = HPHt + (fix.cov if calib is None else fix.cov - calib)
+            B = sum(b for b in (calib, off_cov) if b is not None)
+            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, S, None if isinstance(B, int) else B)
             sd = 0.0 if offset_before is None else math.sqrt(max(offset_before[1], 0.0))
             rec = self._drift.decide(rsus, rsu, fix.t_ns, sd)
         else:
@@ -848,18 +872,17 @@ class BusFilter:
     def _distrust(x, P, i: int | None, rec: RsuRecord, prior_var: float):
         """What the filter took from a newly flagged RSU is suspect. Its pose is widened by the other
         RSUs' mean disagreement with it (large when the filter followed the flagged one, e.g. from
-        its start), so that they can pull it back; the RSU's time offset goes back to its calm value
-        (before its fixes began to disagree) with its prior's variance, as an estimate of its own (its
-        correlations dropped): what its fixes taught since may have been the drift. While it is
-        flagged that variance widens its innovations along the track and the offset is held, and
-        once cleared it is learnt again."""
+        its start), so that they can pull it back; the RSU's time offset goes back to its prior (0,
+        its correlations dropped): its fixes' bias along the track passed for a clock offset (a turned
+        camera's reads as tens of ms), and no earlier value is known to be free of it. While it is
+        flagged that variance widens its innovations along the track, the offset is held and not
+        reported (rsu_assessments), and once cleared it is learnt again from the prior."""
         x, P = x.copy(), P.copy()
         if rec.others_mean is not None:
             P[:3, :3] += np.diag(rec.others_mean ** 2)
         if i is not None:
             var = max(float(P[i, i]), prior_var)
-            if rec.calm_offset is not None:
-                x[i] = rec.calm_offset[0]
+            x[i] = 0.0
             P[i, :] = 0.0
             P[:, i] = 0.0
             P[i, i] = var
@@ -938,7 +961,9 @@ class BusFilter:
         per_src = self.counters()["per_source"]
         out = {}
         for rsu, rec in sorted(g.rsus.items()):
-            if rsu in g.clocks:
+            if rec.flagged:  # excluded: its offset is held at its prior, not an estimate
+                off = var = None
+            elif rsu in g.clocks:
                 off, var = _slot_offset(head, rsu)
             elif rec.offset is not None:
                 off, var = self._remembered_offset(rec, head.t)
@@ -960,9 +985,10 @@ class BusFilter:
     def memory(self) -> dict[str, RsuRecord]:
         """What a new filter for the same bus may start from (BusFilter(config, memory=...)): every
         RSU's record with its time offset and flag (and a flagged RSU's disagreement) as they stand at
-        the newest step. Not the detector's evidence: innovations are against this filter, whose errors
-        the next one does not share (e.g. the pull of a turned camera it followed before flagging it);
-        weighed against the next filter's, they would pass for a disagreement between RSUs."""
+        the newest step, and each RSU's deviation from the others in this filter, added to the earlier
+        passes' (the filter's error cancels in it). Not the innovations: they are against this filter,
+        whose errors the next one does not share (e.g. the pull of a turned camera it followed before
+        flagging it); weighed against the next filter's, they would pass for a disagreement between RSUs."""
         if not self._steps:
             return dict(self._memory)
         self._ensure_clean()
@@ -971,7 +997,7 @@ class BusFilter:
         for rsu, rec in head.g.rsus.items():
             if rsu in head.g.clocks:
                 rec = rec._replace(offset=_slot_offset(head, rsu), offset_t=head.t)
-            out[rsu] = rec.restart()
+            out[rsu] = rec.restart() if self._drift is None else self._drift.carry(rec)
         return out
 
 

@@ -11,6 +11,14 @@ of that RSU)::
     m = A^-1 b          the weighted mean innovation (its fixes minus the filter, in x, y, yaw)
     C = A^-1 A2 A^-1    the covariance of m for white innovations
     T = b' A2^-1 b      chi-square, 3 dof: how persistent its disagreement with the filter is
+    B = sum w B_k / sum w   its constant-bias covariance (below)
+
+S is the innovation covariance without the fix's calibration share: a camera's calibration error is
+common to every fix it makes (`Fix.calib_cov`, what the camera file's calibration covariance adds to
+the fix; toptag.solvers.calibrated), so it does not average down with more fixes, as noise does. It is
+B, the covariance of the RSU's constant bias, together with `bias_floor` (`drift_bias_sigma_m`,
+`drift_bias_sigma_deg`: what a healthy RSU's fixes may be off by beyond their stated calibration, e.g.
+the live pipeline's own per-RSU bias, `toptag eval livefix`).
 
 A single wild fix cannot do much: nu is clipped to a Mahalanobis radius (`clip_sigma`, 10) before it
 enters b, so it weighs like a 10-sigma fix at most. The radius is taken on S plus the drift thresholds
@@ -22,13 +30,16 @@ The test. The filter follows every RSU a little, and it may follow a wrong one a
 from whichever RSU sees the bus first: if that camera is turned, the others look wrong to it). So an
 RSU is judged against the other RSUs, through the filter: its deviation from the others is
 d = m - mean(m of the others), with covariance C + sum(C of the others) / k², and T_d = d' (..)^-1 d
-(the filter's own error, common to all, cancels). An RSU is flagged when
+(the filter's own error, common to all, cancels), and the test is a Mahalanobis one against the noise
+and the biases both: T_d = d' (C + sum C_o / k² + B + sum B_o / k²)^-1 d. A healthy RSU whose bias is
+within its stated calibration uncertainty has T_d within the chi-square law however many fixes it
+sends; a turned camera's grows until it is flagged. An RSU is flagged when
   - at least `min_others` other, unflagged RSUs have enough recent fixes (with one other the
     disagreement is symmetric: nobody can tell who is wrong),
   - T_d exceeds the chi-square quantile of `false_alarm`, over at least `min_fixes` of its fixes
     (effective count (sum w)^2 / sum w^2: a few wild fixes are not persistence),
-  - |d| is larger than the calibration's accuracy (`min_pos_m` in position or `min_yaw_rad` in
-    yaw: a bias that small is calibration error, not drift),
+  - |d| is larger than `min_pos_m` in position or `min_yaw_rad` in yaw (an optional floor; the
+    bias covariance above is what says how large a healthy RSU's disagreement may be),
   - its time offset is known to `max_offset_sigma_s` (an offset being learnt looks like a bias
     along the track), and
   - the others agree among themselves: each one's deviation from the rest (without this RSU) has a
@@ -37,9 +48,13 @@ It is cleared when, over at least `min_fixes` fixes again and with the others in
 below the `clear_probability` quantile (old evidence fades with the window: a camera seen agreeing on
 the next pass is cleared within a second or two).
 Innovations enter only while the filter is healthy (tracking, a fix applied within the last second).
-Evidence is only ever compared within one track: it starts afresh for every RSU when the filter jumps
-to a consensus it had rejected (reacquisition), for the others when an RSU is flagged, and for all in a
-new filter (BusFilter.memory carries offsets and flags, not evidence).
+Innovations are only ever compared within one track: they start afresh for every RSU when the filter
+jumps to a consensus it had rejected (reacquisition), for the others when an RSU is flagged, and for
+all in a new filter (BusFilter.memory carries offsets and flags, not innovations). What a pass does
+carry over to the next filter of the same bus is each RSU's deviation from the others (d and its noise
+covariance, `RsuRecord.past`): the filter's error cancels in it, so it can be added up over passes
+(forgetting over `past_window_s`) when a busy machine delivers too few fixes in one pass to decide.
+It is dropped with everything else when another RSU is flagged (it was measured against that one).
 While an RSU is flagged its fixes are down-weighted (covariance scaled and d d' added) or refused
 (`FilterConfig.flagged_policy`); the filter, if it was following it, widens its pose by the others'
 mean disagreement so that they can pull it back, and the others' evidence, gathered against that
@@ -76,12 +91,17 @@ class RsuRecord(NamedTuple):
     offset: tuple[float, float] | None = None
     offset_t: int | None = None
     sums: tuple[float, float] = (0.0, 0.0)  # sum w, sum w^2 (for n_eff)
-    calm_offset: tuple[float, float] | None = None  # its offset (s, s²) when it last agreed
     m: np.ndarray | None = None  # mean innovation (x, y, yaw)
     C: np.ndarray | None = None  # its covariance
     deviation: np.ndarray | None = None  # d: m minus the others' mean, at its last decision
     deviation_stat: float = 0.0  # T_d
     others_mean: np.ndarray | None = None  # the others' mean innovation then
+    Bs: np.ndarray | None = None  # sum w B_k: its fixes' calibration covariances, weighted as the innovations
+    # Its deviation in this filter at its last decision (d, noise covariance, effective fixes), before any
+    # earlier pass's was added: what memory() carries over.
+    current: tuple | None = None
+    # Deviations of earlier passes, added up (information form: sum C^-1, sum C^-1 d, fixes, time).
+    past: tuple | None = None
 
     @property
     def flagged(self) -> bool:
@@ -93,10 +113,13 @@ class RsuRecord(NamedTuple):
             return np.zeros(3), np.zeros((3, 3))
         return self.m, self.C
 
-    def restart(self) -> RsuRecord:
-        """The record without its evidence (its flag, clock and offsets kept; a flagged RSU keeps the
-        disagreement it was flagged for, which down-weights its fixes until new evidence decides)."""
-        rec = self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None)
+    def restart(self, keep_past: bool = True) -> RsuRecord:
+        """The record without its innovations (its flag, clock and offsets kept; a flagged RSU keeps the
+        disagreement it was flagged for, which down-weights its fixes until new evidence decides).
+        keep_past=False: the earlier passes' deviations go too."""
+        past = self.past if keep_past else None
+        rec = self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None, Bs=None,
+                            current=None, past=past)
         return rec if self.flagged else rec._replace(deviation=None, deviation_stat=0.0, others_mean=None)
 
     def disagreement(self) -> np.ndarray:
@@ -106,6 +129,18 @@ class RsuRecord(NamedTuple):
     def statistic(self) -> float:
         """The chi-square of that disagreement (the deviation's when known, else the bias's)."""
         return self.deviation_stat if self.deviation is not None else self.stat
+
+
+def _add_past(past: tuple | None, current: tuple, t_ns: int, decay: float = 1.0) -> tuple:
+    """Earlier passes' deviations (information form, weighed by `decay`) plus one more (d, C, n)."""
+    d, C, n = current
+    try:
+        I = np.linalg.inv(C)
+    except np.linalg.LinAlgError:
+        return past
+    if past is None:
+        return I, I @ d, float(n), int(t_ns)
+    return decay * past[0] + I, decay * past[1] + I @ d, decay * past[2] + float(n), int(t_ns)
 
 
 def _chi2(d: np.ndarray, C: np.ndarray) -> float:
@@ -128,22 +163,43 @@ class DriftRule:
     min_fixes: float
     max_offset_sigma_s: float
     min_others: int = 2
+    bias_floor: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # a healthy RSU's bias, beyond calibration
+    min_other_fixes: float | None = None  # effective fixes another RSU needs to be compared with (None: min_fixes)
+    past_window_s: float = 0.0  # earlier passes' deviations fade with this time constant (0: not kept)
 
-    def accumulate(self, rec: RsuRecord, t_ns: int, nu: np.ndarray, S: np.ndarray) -> RsuRecord:
-        """The record with one more innovation nu (covariance S) at t_ns."""
+    def accumulate(self, rec: RsuRecord, t_ns: int, nu: np.ndarray, S: np.ndarray,
+                   B: np.ndarray | None = None) -> RsuRecord:
+        """The record with one more innovation nu at t_ns: S its covariance without what the fix
+        shares with every other fix of its RSU, B that share (its constant bias: the calibration's,
+        the time offset's; None: none)."""
+        B = np.zeros((3, 3)) if B is None else B
         Si = np.linalg.inv(S)
         d2 = _chi2(nu, S + self._floor)
         if d2 > self.clip_d2:
             nu = nu * math.sqrt(self.clip_d2 / d2)
         if rec.A is None:
-            A, A2, b, sw, sw2 = Si, Si, Si @ nu, 1.0, 1.0
+            A, A2, b, sw, sw2, Bs = Si, Si, Si @ nu, 1.0, 1.0, B
         else:
             w = math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
             A, A2, b = w * rec.A + Si, (w * w) * rec.A2 + Si, w * rec.b + Si @ nu
-            sw, sw2 = w * rec.sums[0] + 1.0, w * w * rec.sums[1] + 1.0
+            sw, sw2, Bs = w * rec.sums[0] + 1.0, w * w * rec.sums[1] + 1.0, w * rec.Bs + B
         Ai = np.linalg.inv(A)
         return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=_chi2(b, A2), n_eff=sw * sw / sw2, sums=(sw, sw2),
-                            m=Ai @ b, C=Ai @ A2 @ Ai)
+                            m=Ai @ b, C=Ai @ A2 @ Ai, Bs=Bs)
+
+    def carry(self, rec: RsuRecord) -> RsuRecord:
+        """The record with its deviation from the others in this filter added to the earlier passes'
+        (faded by the time since), for the bus's next filter (its innovations go: see restart)."""
+        past = rec.past
+        if self.past_window_s > 0 and not rec.flagged and rec.current is not None:
+            decay = 1.0 if past is None else math.exp(-s_from_ns(max(0, rec.last_t - past[3])) / self.past_window_s)
+            past = _add_past(past, rec.current, rec.last_t, decay)
+        return rec._replace(past=past).restart()
+
+    def bias_cov(self, rec: RsuRecord) -> np.ndarray:
+        """The covariance of an RSU's constant bias: its fixes' calibration share (weighted mean over
+        the window) plus the floor."""
+        return self.bias_floor if rec.Bs is None else rec.Bs / rec.sums[0] + self.bias_floor
 
     @property
     def _floor(self) -> np.ndarray:
@@ -156,14 +212,27 @@ class DriftRule:
     def _large(self, d: np.ndarray) -> bool:
         return math.hypot(d[0], d[1]) > self.min_pos_m or abs(d[2]) > self.min_yaw_rad
 
-    @staticmethod
-    def _deviation(rec: RsuRecord, others: list[RsuRecord]) -> tuple[np.ndarray, float, np.ndarray]:
-        """(d, T_d, the others' mean) of one record against others."""
+    def _deviation(self, rec: RsuRecord, others: list[RsuRecord], t_ns: int) -> tuple:
+        """(d, T_d, the others' mean, n, (d, noise covariance, n) in this filter alone) of one record
+        against others: d and n with the earlier passes' deviations added (when kept), T_d against the
+        noise and the biases of both."""
         k = len(others)
         mo = sum(o.m for o in others) / k
-        Co = sum(o.C for o in others) / (k * k)
+        Cn = rec.C + sum(o.C for o in others) / (k * k)
+        Cb = self.bias_cov(rec) + sum(self.bias_cov(o) for o in others) / (k * k)
         d = rec.m - mo
-        return d, _chi2(d, rec.C + Co), mo
+        current = (d, Cn, rec.n_eff)
+        n = rec.n_eff
+        if rec.past is not None and self.past_window_s > 0:
+            decay = math.exp(-s_from_ns(max(0, t_ns - rec.past[3])) / self.past_window_s)
+            I, Id, n, _ = _add_past(rec.past, current, t_ns, decay)
+            try:
+                Cn = np.linalg.inv(I)
+            except np.linalg.LinAlgError:
+                pass
+            else:
+                d = Cn @ Id
+        return d, _chi2(d, Cn + Cb), mo, n, current
 
     def decide(self, records: dict[str, RsuRecord], rsu: str, t_ns: int,
                offset_sigma_s: float = 0.0) -> RsuRecord:
@@ -171,25 +240,28 @@ class DriftRule:
         decided; `offset_sigma_s`: the uncertainty of its time offset now."""
         rec = records[rsu]
         window_ns = self.window_s * 1e9
+        need = self.min_fixes if self.min_other_fixes is None else self.min_other_fixes
         others = {k: o for k, o in records.items()
                   if k != rsu and not o.flagged and o.m is not None and t_ns - o.last_t <= window_ns
-                  and o.n_eff >= self.min_fixes}
+                  and o.n_eff >= need}
         if len(others) < self.min_others or rec.m is None:
             return rec  # nobody to compare with: the flag stays as it is
-        d, T_d, mo = self._deviation(rec, list(others.values()))
-        rec = rec._replace(deviation=d, deviation_stat=T_d, others_mean=mo)
-        if rec.flagged:
-            if T_d < self.clear_stat and rec.n_eff >= self.min_fixes:
+        if rec.flagged:  # cleared on this filter's evidence alone (a recalibrated camera)
+            d, T_d, mo, n, current = self._deviation(rec._replace(past=None), list(others.values()), t_ns)
+            rec = rec._replace(deviation=d, deviation_stat=T_d, others_mean=mo, current=current)
+            if T_d < self.clear_stat and n >= self.min_fixes:
                 return rec._replace(flagged_since=None)
             return rec
-        if T_d <= self.flag_stat or rec.n_eff < self.min_fixes or offset_sigma_s > self.max_offset_sigma_s \
+        d, T_d, mo, n, current = self._deviation(rec, list(others.values()), t_ns)
+        rec = rec._replace(deviation=d, deviation_stat=T_d, others_mean=mo, current=current)
+        if T_d <= self.flag_stat or n < self.min_fixes or offset_sigma_s > self.max_offset_sigma_s \
                 or not self._large(d):
             return rec
         for k, o in others.items():  # do the others agree among themselves (without this RSU)?
             rest = [x for j, x in others.items() if j != k]
-            if rest and self.isolation_ratio * self._deviation(o, rest)[1] > T_d:
+            if rest and self.isolation_ratio * self._deviation(o, rest, t_ns)[1] > T_d:
                 return rec
-        return rec._replace(flagged_since=t_ns)
+        return rec._replace(flagged_since=t_ns, past=None)
 
 
 @dataclass(frozen=True)
