@@ -699,7 +699,11 @@ class BusFilter:
         Returns (x, P, gate, whether the new slot is the reference)."""
         held = [k for k in g.clocks if k in g.rsus]
         if fix.clock_bound_ns is None:
-            anchored = g.time_ref in g.clocks or any(g.rsus[k].clock_known for k in held)
+            # An offset remembered from an earlier filter was learnt against that one's time: it is an
+            # estimate, not a borrowed prior, and releasing it would throw what it learnt away.
+            rec = g.rsus.get(fix.source)
+            anchored = g.time_ref in g.clocks or any(g.rsus[k].clock_known for k in held) or \
+                (rec is not None and rec.offset is not None)
             return x, P, (g if anchored else g._replace(time_ref=fix.source)), not anchored
         if g.time_ref not in g.clocks:
             return x, P, g._replace(time_ref=None), False
