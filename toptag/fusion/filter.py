@@ -852,8 +852,7 @@ class BusFilter:
         the fix's own covariance: a down-weighting does not hide the disagreement) while the filter
         is healthy; returns the gate and whether the RSU is flagged now. What every fix of the RSU
         shares is its constant bias (toptag.fusion.trust), not noise: the fix's calibration share, and
-        what its time offset's uncertainty implies (`off_cov`: along the track; large while the offset
-        is being learnt, e.g. after a flag reset it to its prior)."""
+        for a flagged RSU what its held time offset's uncertainty implies (`off_cov`: along the track)."""
         rsu = fix.source
         rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
         rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
@@ -863,7 +862,10 @@ class BusFilter:
         if self._drift is not None and healthy:
             calib = fix.calib_cov if self.cfg.drift_calibration_is_bias else None
             S = HPHt + (fix.cov if calib is None else fix.cov - calib)
-            B = sum(b for b in (calib, off_cov) if b is not None)
+            # A flagged RSU's offset is held at its prior: what that implies is a constant bias of its
+            # fixes (else it could not clear). Unflagged, the offset is learnt from them, and no flag is
+            # raised while it is uncertain (drift_max_offset_sigma_ms).
+            B = sum(b for b in (calib, off_cov if rec.flagged else None) if b is not None)
             rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, S, None if isinstance(B, int) else B)
             sd = 0.0 if offset_before is None else math.sqrt(max(offset_before[1], 0.0))
             rec = self._drift.decide(rsus, rsu, fix.t_ns, sd)
