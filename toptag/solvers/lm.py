@@ -68,7 +68,8 @@ def levenberg_marquardt_batch(fun: NormalFn, theta0, max_iter: int = 60, step_to
     theta = np.array(theta0, dtype=float)
     n_b, n = theta.shape
     cost_v, A, g, extra = fun(theta)
-    A, g, extra = A.copy(), g.copy(), tuple(e.copy() for e in extra)
+    if n_b > 1:  # rows are replaced one by one below (a lone problem's arrays are only ever replaced whole)
+        A, g, extra = A.copy(), g.copy(), tuple(e.copy() for e in extra)
     cost = cost_v.tolist()
     active = [math.isfinite(x) for x in cost]
     converged = [False] * n_b
@@ -106,7 +107,10 @@ def levenberg_marquardt_batch(fun: NormalFn, theta0, max_iter: int = 60, step_to
         cost_new_v, A_new, g_new, extra_new = fun(trial)
         cost_new = cost_new_v.tolist()
         better = [b for b in tried if cost_new[b] <= cost[b]]  # False for a non-finite cost
-        if len(better) == n_b:  # every problem moves: take the new arrays whole
+        if n_b == 1:
+            if better:
+                theta, A, g, extra = trial, A_new, g_new, extra_new
+        elif len(better) == n_b:  # every problem moves: take the new arrays whole
             theta, A, g, extra = trial, A_new.copy(), g_new.copy(), tuple(e.copy() for e in extra_new)
         else:
             for b in better:
