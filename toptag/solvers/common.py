@@ -145,13 +145,12 @@ def safe_inverse(A: np.ndarray) -> np.ndarray:
     determine the parameters: singular, not finite, or a condition number (1-norm: within a factor n
     of the 2-norm's) above MAX_CONDITION."""
     A = np.asarray(A, dtype=float)
-    finite = np.isfinite(A).all(axis=(-2, -1))
     try:
-        inv = np.linalg.inv(A if finite.all() else np.where(finite[..., None, None], A, 0.0))
+        inv = np.linalg.inv(A)  # a non-finite A raises too (numpy reports its invalid values as singular)
     except np.linalg.LinAlgError:
         if A.ndim == 2:
             return np.full_like(A, np.inf)
         return np.stack([safe_inverse(a) for a in A.reshape(-1, *A.shape[-2:])]).reshape(A.shape)
-    norm_1 = np.abs(A).sum(axis=-2).max(axis=-1)
-    good = finite & (norm_1 * np.abs(inv).sum(axis=-2).max(axis=-1) <= MAX_CONDITION)
+    # False for a non-finite inverse (its norm is not finite) as for an ill-conditioned A.
+    good = np.abs(A).sum(axis=-2).max(axis=-1) * np.abs(inv).sum(axis=-2).max(axis=-1) <= MAX_CONDITION
     return inv if good.all() else np.where(good[..., None, None], inv, np.inf)
