@@ -123,6 +123,8 @@ def screening_needed(c: Corners, fits: SubsetFits, sigma_px: float | None, sigma
     # Leave-one-out masks, then (three units or more) each unit alone; with two, each alone is the
     # other's leave-one-out.
     lin = fits.linear_fits(about, 1.0 - alone if n_u == 2 else np.vstack([1.0 - alone, alone]))
+    if not np.isfinite(lin.dof[:n_u]).all():  # some rest does not determine the pose: judge it for real
+        return Consistency(True)
     n_p = lin.p.shape[1]
     e = np.take_along_axis(lin.r_white[:n_u], rows, axis=1)
     Jk = about.all_J_white[rows][..., :n_p]
