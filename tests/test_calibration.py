@@ -13,7 +13,16 @@ import pytest
 from sim.image_model import ImageModel
 from sim.render import PlacedVehicle, render
 from sim.scene import bundled_vehicle
-from sim.studies.calibration import BOARD, extrinsics_trial, intrinsics_trial, study_camera
+from sim.studies.calibration import (
+    BOARD,
+    FOCAL_TARGET,
+    UNDISTORTION_TARGET_PX,
+    VIEW_POSES,
+    board_frames_model,
+    extrinsics_trial,
+    intrinsics_trial,
+    study_camera,
+)
 from sim.targets import board_poses, plate_layout, render_board, surveyed_points
 from toptag.calibration.boards import Board, BoardView
 from toptag.calibration.extrinsics import perturbed
@@ -43,7 +52,7 @@ def test_rendered_board_corners_are_found_where_they_project(spec):
     pattern, texel, margin = board.pattern()
     levels = np.where(pattern > 127, model.tag_white, model.tag_black)
     R, t = board_poses(camera, (spec["squares_x"] * spec["square_size"], spec["squares_y"] * spec["square_size"]),
-                       1, np.random.default_rng(5), grid=(1, 1))[0]
+                       1, np.random.default_rng(5), grid=(1, 1), distance=(1.0, 1.1))[0]  # the whole board in view
     view = board.detect(render_board(camera, levels, texel, R, t, (margin, margin), model, np.random.default_rng(1)))
     assert view is not None and len(view.ids) >= 0.8 * len(board.object_points)
     truth = cv2.projectPoints(view.object_points, cv2.Rodrigues(R)[0], t, camera.K, camera.dist)[0].reshape(-1, 2)
@@ -51,32 +60,60 @@ def test_rendered_board_corners_are_found_where_they_project(spec):
     if spec["type"] == "chessboard":  # a symmetric board may be read turned by 180°
         flipped = view.image_points[::-1] - truth
         err = min(err, flipped, key=lambda e: np.abs(e).max())
-    # The calibrated image model's corners are about as precise as real photographs' (0.20-0.24 px median
-    # against saddle-point truth, docs/real-data.md): 0.18-0.19 px RMS here.
-    assert np.sqrt(np.mean(err ** 2)) < 0.3 and np.abs(err).max() < 1.0
+    # The calibrated image model's corners (through its H.264 stream) are about as precise as real
+    # photographs' (0.20-0.24 px median against saddle-point truth, docs/real-data.md): 0.18-0.25 px RMS
+    # here. Now and then a ChArUco corner at the board's edge or beside a smeared marker is 1-2 px off
+    # (1 of the A0 board's 366 here): calibrate_intrinsics leaves such outliers out.
+    norm = np.linalg.norm(err, axis=1)
+    assert np.sqrt(np.mean(err ** 2)) < 0.3 and np.mean(norm < 1.0) >= 0.99 and norm.max() < 3.0
 
 
 @pytest.mark.integration
-def test_intrinsics_from_20_rendered_views_reach_their_bound():
+def test_intrinsics_from_20_views_of_the_recommended_board_meet_the_targets():
+    # The board README asks a site to print (A0, 24 x 17 squares of 48 mm), its views (0.6-1.0 m, tilted up
+    # to 45°, into every image corner) and its frames (lossless snapshots; the calibrated image model
+    # otherwise): `toptag eval calibration` runs 10 such trials; one here.
     camera = study_camera()
-    trial, result = intrinsics_trial(camera, 20, ImageModel(), np.random.default_rng(11))
+    trial, result = intrinsics_trial(camera, 20, board_frames_model(ImageModel()), np.random.default_rng(11))
     assert trial.views >= 18
-    # On the calibrated image model the focal length's Cramér-Rao bound for 20 views of this board is
-    # itself above the issue's 0.05 % (about 0.06-0.07 %: corners of 0.2 px): the target cannot be held
-    # by any estimator on these views, and `toptag eval calibration` prints by how much it is missed.
-    # What the procedure must do is reach its bound.
-    assert abs(trial.fx_error_px) <= 3 * trial.fx_bound_px  # a fair estimator: within 3 sigma of its bound
+    # the targets, with room: the focal length's Cramér-Rao bound is about 0.013 % (a quarter of the
+    # target) where issue 12's first board (16 x 12 x 45 mm at 0.7-1.1 m, the stream) left it at 0.067 %
+    assert trial.fx_bound_px / camera.K[0, 0] < 0.4 * FOCAL_TARGET
+    assert abs(trial.focal_rel_error) <= FOCAL_TARGET
+    assert trial.undistortion_max_px <= UNDISTORTION_TARGET_PX
+    # a fair estimator: within 3 sigma of its bound, its own covariance about as large as the bound
+    assert abs(trial.fx_error_px) <= 3 * trial.fx_bound_px
     assert trial.undistortion_rms_px <= 3 * trial.undistortion_bound_rms_px
-    assert abs(trial.focal_rel_error) <= 0.002 and trial.undistortion_max_px <= 1.0  # and never far off
-    # its own covariance says about as much as the bound (same problem, noise from the residuals)
     assert 0.5 < result.std["fx"] / trial.fx_bound_px < 2.0
+
+
+@pytest.mark.unit
+def test_the_printable_board_is_the_board_file_at_its_print_scale(tmp_path):
+    board = Board.from_dict(BOARD)
+    r = subprocess.run([sys.executable, "-m", "toptag", "calibrate", "board", "--board", str(REPO / "toptag/data/board_charuco_a0.json"),
+                        "--out", str(tmp_path / "board.png"), "--dpi", "100"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "print at 100 % scale" in r.stdout
+    raw = (tmp_path / "board.png").read_bytes()
+    k = raw.index(b"pHYs")
+    ppm = int.from_bytes(raw[k + 4:k + 8], "big")
+    img = cv2.imread(str(tmp_path / "board.png"), cv2.IMREAD_GRAYSCALE)
+    h, w = img.shape
+    # fits an A0 sheet (1189 x 841 mm) at the file's scale, squares as the board file says
+    assert w / ppm <= 1.189 and h / ppm <= 0.841
+    assert (w / ppm - BOARD["squares_x"] * BOARD["square_size"]) == pytest.approx(0.02, abs=0.002)
+    view = board.detect(img)
+    assert view is not None and len(view.ids) == len(board.object_points)
+    corners_m = view.image_points / ppm  # the printed corners land on the board file's grid (plus the margin)
+    assert np.abs(corners_m - corners_m[0] - (view.object_points[:, :2] - view.object_points[0, :2])).max() < 2 / ppm
 
 
 @pytest.mark.unit
 def test_intrinsics_refuse_too_few_views_and_an_uncovered_image():
     camera = study_camera()
     board = Board.from_dict(BOARD)
-    views = _truth_views(camera, board, board_poses(camera, (0.72, 0.54), 20, np.random.default_rng(2)))
+    size = (BOARD["squares_x"] * BOARD["square_size"], BOARD["squares_y"] * BOARD["square_size"])
+    views = _truth_views(camera, board, board_poses(camera, size, 20, np.random.default_rng(2), **VIEW_POSES))
     with pytest.raises(CalibrationError, match=r"at least 10 views .* got 6 .*no board found in a\.png"):
         calibrate_intrinsics(views[:6], (camera.width, camera.height), names_without_board=["a.png"])
     # every view in the top-left quarter of the image
@@ -196,8 +233,9 @@ def site_images(tmp_path_factory):
     pattern, texel, margin = board.pattern()
     levels = np.where(pattern > 127, model.tag_white, model.tag_black)
     size = (BOARD["squares_x"] * BOARD["square_size"], BOARD["squares_y"] * BOARD["square_size"])
-    for i, (R, t) in enumerate(board_poses(camera, size, 12, rng)):
-        cv2.imwrite(str(d / f"board-{i:02d}.png"), render_board(camera, levels, texel, R, t, (margin, margin), model, rng))
+    snapshot = board_frames_model(model)
+    for i, (R, t) in enumerate(board_poses(camera, size, 12, rng, **VIEW_POSES)):
+        cv2.imwrite(str(d / f"board-{i:02d}.png"), render_board(camera, levels, texel, R, t, (margin, margin), snapshot, rng))
     plates = plate_layout(camera)
     cv2.imwrite(str(d / "plates.png"), render(camera, plates, (), model, rng))
     (d / "points.json").write_text(json.dumps(surveyed_points(plates, 0.005, rng)))

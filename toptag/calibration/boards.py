@@ -26,6 +26,15 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from toptag.inputs import read_model
 
 MARKER_BITS = {"4X4": 4, "5X5": 5, "6X6": 6, "7X7": 7}
+# The board README recommends a site to print (A0 on a rigid plate; why: README "Calibration accuracy").
+RECOMMENDED_BOARD = "board_charuco_a0.json"
+
+
+def recommended_board_path() -> Path:
+    """The board file shipped with toptag (toptag/data/board_charuco_a0.json)."""
+    from importlib import resources
+
+    return Path(str(resources.files("toptag.data").joinpath(RECOMMENDED_BOARD)))
 
 
 class BoardFile(BaseModel):
@@ -94,6 +103,15 @@ class Board:
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, s.dictionary))
         return cv2.aruco.CharucoBoard((s.squares_x, s.squares_y), s.square_size, s.marker_size, d)
 
+    @cached_property
+    def _charuco_detector(self):
+        # tryRefineMarkers: markers missed at first (small, tilted, smeared by the stream's codec) are
+        # looked for again where the board's layout puts them: on rendered H.264 views of a tilted board
+        # about 1.2-1.4 times the corners (corner noise unchanged), and the information with them.
+        params = cv2.aruco.CharucoParameters()
+        params.tryRefineMarkers = True
+        return cv2.aruco.CharucoDetector(self._charuco, params)
+
     def pattern(self) -> tuple[np.ndarray, float, int]:
         """(uint8 image, texel size m, margin texels): the printed board, one white square of margin
         around it, at a resolution where every marker cell is whole texels (exact rendering)."""
@@ -110,11 +128,26 @@ class Board:
             img = np.pad(np.where((i + j) % 2 == 0, 0, 255).astype(np.uint8), 1, constant_values=255)
         return img, s.square_size / k, k
 
+    def printable(self, dpi: float = 200.0, margin: float = 0.01) -> tuple[np.ndarray, float]:
+        """(uint8 image, pixels per metre): the board to print at 100 % scale, `margin` metres of white
+        around the squares; a whole number of pixels per square, so that the corners are exact and the
+        printed scale is the file's (pixels per metre, also in the PNG written by write_png)."""
+        s = self.spec
+        px = max(8, round(s.square_size / 0.0254 * dpi))
+        border = round(margin / s.square_size * px)
+        size = (s.squares_x * px + 2 * border, s.squares_y * px + 2 * border)
+        if s.type == "charuco":
+            img = self._charuco.generateImage(size, marginSize=border, borderBits=1)
+        else:
+            j, i = np.mgrid[0:s.squares_y, 0:s.squares_x]
+            squares = np.where((i + j) % 2 == 0, 0, 255).astype(np.uint8).repeat(px, axis=0).repeat(px, axis=1)
+            img = np.pad(squares, border, constant_values=255)
+        return img, px / s.square_size
+
     def detect(self, gray: np.ndarray, name: str = "") -> BoardView | None:
         """The board's corners in a gray image (None if the board is not found)."""
         if self.spec.type == "charuco":
-            det = cv2.aruco.CharucoDetector(self._charuco)
-            corners, ids, _, _ = det.detectBoard(gray)
+            corners, ids, _, _ = self._charuco_detector.detectBoard(gray)
             if ids is None or len(ids) < 4:
                 return None
             ids = ids.ravel().astype(int)
@@ -127,6 +160,21 @@ class Board:
             ids = np.arange(len(corners))
             pts = corners.reshape(-1, 2).astype(float)
         return BoardView(ids, pts, self.object_points[ids], name)
+
+
+def write_png(path: str | Path, image: np.ndarray, pixels_per_metre: float) -> None:
+    """A PNG with its print scale (pHYs chunk), so that printing it at 100 % gives the board's size."""
+    import struct
+    import zlib
+
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError("PNG encoding failed")
+    data = struct.pack(">IIB", round(pixels_per_metre), round(pixels_per_metre), 1)
+    chunk = struct.pack(">I", len(data)) + b"pHYs" + data + struct.pack(">I", zlib.crc32(b"pHYs" + data))
+    raw = buf.tobytes()
+    end_ihdr = 8 + 8 + 13 + 4  # signature, IHDR length and type, its 13 bytes, its CRC
+    Path(path).write_bytes(raw[:end_ihdr] + chunk + raw[end_ihdr:])
 
 
 def _whole(x: float) -> bool:

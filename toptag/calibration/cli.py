@@ -1,8 +1,13 @@
 """`toptag calibrate`: calibrate an RSU camera on site.
 
+    toptag calibrate board --board BOARD.json --out BOARD.png [--dpi 200]
     toptag calibrate intrinsics --board BOARD.json --id ID IMAGE... --out CAM.json
     toptag calibrate extrinsics --camera CAM.json --points POINTS.json [IMAGE] --out CAM.json
     toptag calibrate check --camera CAM.json --points POINTS.json IMAGE
+
+board: the board file's pattern as a PNG to print at 100 % scale (its print scale is in the file; a whole
+number of pixels per square, 1 cm of white around the squares). The recommended board is
+toptag/data/board_charuco_a0.json (README, "Installing at a site").
 
 intrinsics: ChArUco or chessboard views (toptag.calibration.boards); prints the reprojection RMS, the
 error of every image, each parameter with its standard deviation and the image coverage; refuses too
@@ -32,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from toptag.calibration.boards import Board
+from toptag.calibration.boards import Board, write_png
 from toptag.calibration.extrinsics import (
     DEFAULT_SIGMA_PX,
     FOOTPRINT,
@@ -63,6 +68,23 @@ def _write_camera(camera: Camera, out: Path) -> None:
         raise InputError(f"camera file {out}: cannot write ({e.strerror or e})") from None
 
 
+# ---- the board to print ---------------------------------------------------------------------------
+def run_board(args) -> int:
+    board = Board.load(args.board)
+    img, ppm = board.printable(args.dpi)
+    try:
+        write_png(args.out, img, ppm)
+    except OSError as e:
+        raise InputError(f"board image {args.out}: cannot write ({getattr(e, 'strerror', None) or e})") from None
+    h, w = img.shape
+    s = board.spec
+    print(f"wrote {args.out}: {w}x{h} px, print at 100 % scale: {1000 * w / ppm:.1f} x {1000 * h / ppm:.1f} mm "
+          f"({ppm * 0.0254:.1f} dpi), squares {1000 * s.square_size:g} mm"
+          + (f", markers {1000 * s.marker_size:g} mm" if s.marker_size else "")
+          + "; measure the printed squares and put their size in the board file")
+    return 0
+
+
 # ---- intrinsics ---------------------------------------------------------------------------------
 def run_intrinsics(args) -> int:
     board = Board.load(args.board)
@@ -89,7 +111,8 @@ def run_intrinsics(args) -> int:
     print(f"board found in {len(views)} of {len(views) + len(no_board)} images"
           + (f" (not in: {', '.join(no_board)})" if no_board else ""))
     r = calibrate_intrinsics(views, size, min_views=args.min_views, names_without_board=no_board)
-    print(f"reprojection RMS {r.rms_px:.3f} px per corner; corner noise {r.sigma_px:.3f} px per coordinate")
+    print(f"reprojection RMS {r.rms_px:.3f} px per corner; corner noise {r.sigma_px:.3f} px per coordinate"
+          + (f"; {r.outliers} outlying corners left out" if r.outliers else ""))
     print("per image: " + ", ".join(f"{n} {e:.3f}" for n, e in r.per_view_rms))
     std = r.std
     vals = dict(zip(PARAMS, [r.K[0, 0], r.K[1, 1], r.K[0, 2], r.K[1, 2], *r.dist]))
@@ -190,6 +213,10 @@ def run_check(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="toptag calibrate", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="what", required=True)
+    b = sub.add_parser("board", help="the board file's pattern as a PNG to print at 100 %% scale")
+    b.add_argument("--board", required=True, help="board file (JSON)")
+    b.add_argument("--out", required=True, type=Path, help="PNG to write")
+    b.add_argument("--dpi", type=float, default=200.0, help="print resolution (default 200)")
     i = sub.add_parser("intrinsics", help="intrinsics from ChArUco or chessboard views")
     i.add_argument("--board", required=True, help="board file (JSON)")
     i.add_argument("--id", required=True, help="camera id (the RSU id)")
@@ -215,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    run = {"intrinsics": run_intrinsics, "extrinsics": run_extrinsics, "check": run_check}[args.what]
+    run = {"board": run_board, "intrinsics": run_intrinsics, "extrinsics": run_extrinsics, "check": run_check}[args.what]
     try:
         return run(args)
     except InputError as e:
