@@ -43,7 +43,7 @@ import numpy as np
 
 from sim.image_model import ImageModel
 from sim.render import render
-from sim.studies import require_plotting
+from sim.studies import require_plotting, write_results
 from sim.targets import board_poses, plate_corners_world, plate_layout, render_board, surveyed_points
 from toptag.calibration.boards import Board, recommended_board_path
 from toptag.calibration.extrinsics import (
@@ -350,7 +350,7 @@ def run(out: Path, intrinsic_trials: int = 10, views: int = 20, extrinsic_trials
            "intrinsic_trials": [vars(t) for t in intr], "extrinsic_trials": [vars(t) for t in extr],
            "extrinsic_covariance_example": example.covariance.tolist() if example else None,
            "seconds": time.monotonic() - t0}
-    (out / "results.json").write_text(json.dumps(doc, indent=1))
+    write_results(out, doc)
     i = summary.get("intrinsics", {})
     _plots(out, intr, extr, example, camera, model, views, f"{i.get('board', '')}, {i.get('frames', '')}")
     return doc
