@@ -372,7 +372,7 @@ class SubsetFit:
     theta: np.ndarray
     r_white: np.ndarray  # whitened residuals (px) of the units fitted
     J_white: np.ndarray  # whitened Jacobian over (x, y, yaw[, z]) (px)
-    dof: float
+    dof: float  # NaN for the fit of every unit, as its information is None (nobody reads them)
     converged: bool
     # Every corner of `source` at this fit's pose (the outlier test predicts the units left out with
     # them): whitened residuals (2N,), Jacobian (2N, 4) over (x, y, yaw, z), and in front (N,).
@@ -492,15 +492,20 @@ class SubsetFits:
 
         res = levenberg_marquardt_batch(fun, p0)
         r_all, J_all, front, r_px, J_px = res.extra
-        Jw = J_all[..., :n_p] * np.repeat(corner_mask, 2, axis=1)[..., None]
-        JtJ = np.swapaxes(Jw, 1, 2) @ Jw
-        H = JtJ / s_w ** 2
-        if zfree:
-            H[:, 3, 3] += 1.0 / self.sigma_h ** 2
-        H_inv = safe_inverse(H)
-        trace = np.einsum("bij,bji->b", H_inv, JtJ).tolist()
         usable = (ok_start & np.isfinite(res.theta).all(axis=1)).tolist()
-        determined = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
+        if all(len(key) == len(c.units) for key in keys):
+            # The fit of every unit is never a leave-one-out rest nor an own fit, the only readers of a
+            # fit's dof and information: not computed (NaN, None).
+            H, trace, determined = [None] * len(keys), [math.nan] * len(keys), [True] * len(keys)
+        else:
+            Jw = J_all[..., :n_p] * np.repeat(corner_mask, 2, axis=1)[..., None]
+            JtJ = np.swapaxes(Jw, 1, 2) @ Jw
+            H = JtJ / s_w ** 2
+            if zfree:
+                H[:, 3, 3] += 1.0 / self.sigma_h ** 2
+            H_inv = safe_inverse(H)
+            trace = np.einsum("bij,bji->b", H_inv, JtJ).tolist()
+            determined = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
         converged = (res.converged & (front | ~corner_mask).all(axis=1)).tolist()
         thetas = np.zeros((len(keys), 6))
         thetas[:, [IX, IY, IYAW, IZ]] = _level_poses(res.theta, h)
