@@ -145,6 +145,19 @@ class CoarsePosition(BaseModel):
     y: float
     sigma_m: float = Field(gt=0)
     source: Literal["gnss", "fused"] = "gnss"
+    # Optional (older peers send none): the bus's velocity at t_ns with the sigma of each component (its
+    # filter's), or, without a velocity, its odometry's speed; either lets an RSU predict the position to
+    # a frame's time instead of widening it by the top speed.
+    vx: float | None = None
+    vy: float | None = None
+    velocity_sigma_mps: float | None = Field(default=None, ge=0)
+    speed_mps: float | None = Field(default=None, ge=0)
+
+    @model_validator(mode="after")
+    def _velocity_whole(self) -> CoarsePosition:
+        if (self.vx is None) != (self.vy is None) or (self.vx is not None and self.velocity_sigma_mps is None):
+            raise ValueError("vx, vy and velocity_sigma_mps come together")
+        return self
 
 
 class Approach(Message):

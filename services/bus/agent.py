@@ -1,8 +1,8 @@
 """`toptag bus`: the bus agent.
 
 Knows the map of intersections. From its position (GNSS when it has one, its fused pose otherwise) it
-announces itself (Approach with its code bag, repeated every second, a liveliness token and an
-answer to session queries) when it enters an intersection's approach radius, and leaves (Leave, token
+announces itself (Approach with its code bag, repeated every 0.2 s with where the bus is, a liveliness
+token and an answer to session queries) when it enters an intersection's approach radius, and leaves (Leave, token
 withdrawn) when it exits. It fuses its IMU/odometry with the RSUs' PoseFixes, each applied at its
 capture time, and publishes FusedPose at 50 Hz with covariance and health. Once a second it publishes
 its assessment of every RSU it has heard from lately (RsuDiagnosis: the RSU's estimated time offset,
@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import threading
 import time
 
@@ -50,7 +51,12 @@ from toptag.vehicle import Vehicle
 log = logging.getLogger(__name__)
 
 IMU_GAP_RESET_S = 1.0  # without IMU for this long the state cannot be propagated: start afresh
-APPROACH_REPEAT_S = 1.0  # one-shot messages can be lost when routes are new: repeat the announcement
+# The announcement is repeated while in session: one-shot messages can be lost when routes are new, and
+# each repeat carries the bus's latest whereabouts, which the RSUs predict to each frame's time to skip
+# searching while the bus cannot be in their view (the fresher, the tighter).
+ANNOUNCE_PERIOD_S = 0.2
+GNSS_MAX_AGE_S = 5.0  # an older GNSS fix says nothing useful of where the bus is
+ANNOUNCED_MAX_SIGMA_M = 10.0  # a fused pose less certain than this is not announced (GNSS, if any, is)
 DIAGNOSIS_PERIOD_S = 1.0
 DIAGNOSIS_KEEP_S = 30.0  # an RSU not heard from for this long is no longer assessed on the wire
 
@@ -78,6 +84,7 @@ class BusAgent:
         self._past_paths: dict[str, int] = {}  # fix counts by path of the filters before this one
         self._last_imu_ns: int | None = None
         self._gnss: GnssFix | None = None
+        self._wheel_speed: float | None = None
         self.fix_latency_ns: list[int] = []
         self.fixes_received = 0
         # Session state (one intersection at a time).
@@ -111,6 +118,7 @@ class BusAgent:
                 self.filter_resets += 1
                 log.info("IMU gap of %.1f s: filter restarted", s_from_ns(m.t_ns - self._last_imu_ns))
             self._last_imu_ns = m.t_ns
+            self._wheel_speed = m.wheel_speed
             self.filter.add_imu(m.t_ns, m.gyro_z, m.accel_x, m.accel_y, m.wheel_speed)
 
     def _on_gnss(self, m: GnssFix) -> None:
@@ -136,9 +144,16 @@ class BusAgent:
         if est is not None and est.health.status == "ok":
             sigma = float(np.sqrt(max(est.cov[0, 0], est.cov[1, 1], 1e-6)))
             return CoarsePosition(t_ns=now_ns, x=est.x, y=est.y, sigma_m=sigma, source="fused")
-        if gnss is not None and s_from_ns(now_ns - gnss.t_ns) < 5.0:
+        if gnss is not None and s_from_ns(now_ns - gnss.t_ns) < GNSS_MAX_AGE_S:
             return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss")
         return None
+
+    def whereabouts(self, now_ns: int) -> CoarsePosition | None:
+        """What the Approach tells the RSUs of where the bus is (announced_position)."""
+        with self._lock:
+            est = self.filter.estimate(now_ns) if self.filter.initialized else None
+            gnss, speed = self._gnss, self._wheel_speed
+        return announced_position(est, gnss, speed, now_ns)
 
     def _enter(self, inter: IntersectionSpec) -> None:
         self._approach = Approach(bus_id=self.bus_id, intersection_id=inter.id, vehicle=self.vehicle.spec,
@@ -150,6 +165,7 @@ class BusAgent:
         # later, finds both.
         self._queryable = serve_session(self.session, lambda: self._approach, logger=log)
         self._token = declare_alive(self.session, inter.id, self.bus_id)
+        self._position = self.whereabouts(time.time_ns())
         self._announce()
         log.info("entered intersection %s: announced with tags %s", inter.id, self.vehicle.tag_ids)
 
@@ -178,14 +194,14 @@ class BusAgent:
     def step(self, now_ns: int) -> None:
         """Presence, repeated announcements and the fused output, once per output period."""
         pos = self.position(now_ns)
-        self._position = pos
         if pos is not None:
             for event, inter in self.presence.update(pos.x, pos.y):
                 if event == "leave":
                     self._leave("left the approach radius")
                 else:
                     self._enter(inter)
-        if self._approach is not None and time.monotonic() - self._last_announce >= APPROACH_REPEAT_S:
+        if self._approach is not None and time.monotonic() - self._last_announce >= ANNOUNCE_PERIOD_S:
+            self._position = self.whereabouts(now_ns)
             self._announce()
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
@@ -250,6 +266,24 @@ class BusAgent:
         if lat.size == 0:
             return {}
         return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99))}
+
+
+def announced_position(est, gnss: GnssFix | None, wheel_speed: float | None, now_ns: int) -> CoarsePosition | None:
+    """Where the bus tells the RSUs it is. Its filter's pose once a fix has started it (kept by IMU and
+    odometry between fixes, its covariance growing honestly), with its velocity and that velocity's
+    sigma; else its latest GNSS fix with its odometry's speed; else nothing. (Presence uses
+    BusAgent.position: what "in session" means does not change.)"""
+    if est is not None and est.health.status != "acquiring" and est.health.pos_sigma_m <= ANNOUNCED_MAX_SIGMA_M:
+        c, s = math.cos(est.yaw), math.sin(est.yaw)
+        P = est.state_cov  # STATE_NAMES: x, y, yaw, speed, ...
+        v_sigma = math.sqrt(max(P[3, 3], 0.0) + est.speed ** 2 * max(P[2, 2], 0.0))
+        return CoarsePosition(t_ns=est.t_ns, x=est.x, y=est.y, sigma_m=max(est.health.pos_sigma_m, 1e-3),
+                              source="fused", vx=est.speed * c, vy=est.speed * s, velocity_sigma_mps=v_sigma)
+    if gnss is not None and s_from_ns(now_ns - gnss.t_ns) < GNSS_MAX_AGE_S:
+        speed = None if wheel_speed is None or not math.isfinite(wheel_speed) else abs(wheel_speed)
+        return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss",
+                              speed_mps=speed)
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:

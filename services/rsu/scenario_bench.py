@@ -3,14 +3,16 @@
 The live demo's figures depend on the machine's load (a busy RSU skips frames, which changes what it
 does next). This plays the scenario's cameras frame by frame in simulated time instead and feeds each
 RSU pipeline what its service would get: a bus's code bag while the bus is inside the intersection's
-approach radius (toptag.fusion.presence on the true position), the bus's coarse position once a
-second as its Approach carries it (its latest GNSS fix, at most 5 s old; none inside the GNSS shadow:
-the fused pose the bus agent also sends is left out, so this is the pessimistic case), and every other
-RSU's fixes as hints. Each frame's processing (decode, search or track, solve) is timed in process CPU
+approach radius (toptag.fusion.presence on the true position), the bus's whereabouts every 0.2 s as its
+Approach carries them (services.bus.agent.announced_position: the pose of a bus filter fed with the
+bus's IMU/odometry and with the RSUs' fixes, once a fix has started it, with its velocity; else the
+latest GNSS fix, at most 5 s old, with the odometry's speed; none inside the GNSS shadow before a fix),
+and every other RSU's fixes as hints. Fixes reach the filter and the hints at once (no network delay). Each frame's processing (decode, search or track, solve) is timed in process CPU
 time, so the figures say how much work the RSUs do, not how busy the machine was. Rendering is not
 counted."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -18,17 +20,18 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from services.bus.agent import ANNOUNCE_PERIOD_S, IMU_GAP_RESET_S, announced_position
+from protocol.messages import GnssFix
 from services.monitor import frame_kind
 from sim.scenario import bundled_scenario_path, load_scenario
 from sim.world import World
+from toptag.fusion.filter import BusFilter
 from toptag.fusion.presence import IntersectionPresence
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.units import NS_PER_S, s_from_ns
 
 FIX_FRESH_S = 1.0  # the bus filter's health is "degraded" after this long without a fix (FilterConfig)
 T0_NS = 1_800_000_000 * NS_PER_S  # the scenario's start (any fixed instant: the run repeats exactly)
-APPROACH_REPEAT_S = 1.0  # the bus agent's Approach period (services/bus/agent.py)
-GNSS_MAX_AGE_S = 5.0  # the agent's coarse position: its latest GNSS fix while younger than this
 
 
 @dataclass
@@ -42,6 +45,11 @@ class RsuTally:
     fixes: int = 0
     searches_ms: list[float] = field(default_factory=list)  # frames with an acquisition search
     searches_in_vain: int = 0  # ... while none of the buses searched for had two tags in view
+    # A bus entering this camera's view (two tags in view, after a frame without): the time from there to
+    # this RSU's next fix of it, or a miss when it left the view first.
+    entering: dict[str, int] = field(default_factory=dict)  # bus -> capture time of the entry, until fixed
+    acquire_delays_ms: list[float] = field(default_factory=list)
+    entries_missed: int = 0
 
     def figures(self, duration_s: float) -> dict:
         every = [ms for v in self.cpu_ms.values() for ms in v]
@@ -57,7 +65,17 @@ class RsuTally:
                 "search_cpu_ms_p50": round(float(np.percentile(self.searches_ms, 50)), 3) if self.searches_ms else None,
                 "searches_with_no_bus_in_view": self.searches_in_vain,
                 "fixes": self.fixes,
+                "view_entries": len(self.acquire_delays_ms) + self.entries_missed,
+                "view_entries_missed": self.entries_missed,
+                "acquire_delay_ms": _spread(self.acquire_delays_ms),
                 "fix_rate_in_view": round(self.fixed_in_view / self.in_view, 4) if self.in_view else None}
+
+
+def _spread(ms: list[float]) -> dict | None:
+    if not ms:
+        return None
+    return {"mean": round(float(np.mean(ms)), 1), "p90": round(float(np.percentile(ms, 90)), 1),
+            "max": round(float(np.max(ms)), 1)}
 
 
 def scenario_frames(world: World, duration_s: float, progress=None):
@@ -81,8 +99,12 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
     tallies = [RsuTally() for _ in pipelines]
     presence = {b: IntersectionPresence(world.site) for b in world.bus_ids}
     in_session: set[str] = set()
-    gnss: dict[str, tuple] = {}
+    gnss: dict[str, GnssFix] = {}
     next_approach: dict[str, int] = {}
+    filters: dict[str, BusFilter] = {}  # each bus's own filter, as its agent runs it
+    last_imu: dict[str, int] = {}
+    wheel: dict[str, float] = {}
+    seen_by: set[tuple[int, str]] = set()  # (RSU, bus): two of its tags in view in the RSU's last frame
     last_fix: dict[str, int] = {}
     covered = samples = 0
     viewed = view_samples = 0  # (first RSU's frame, bus in session): two of its tags in some RSU's view
@@ -90,8 +112,16 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
         truth = world.truth_at(t)
         for bus in world.bus_ids:
             for g in world.gnss_between(bus, t - NS_PER_S, t):
-                gnss[bus] = (g.t_ns, g.x, g.y, g.sigma_m)
+                gnss[bus] = GnssFix(bus_id=bus, t_ns=g.t_ns, x=g.x, y=g.y, sigma_m=g.sigma_m)
             s = truth.get(bus)
+            imu = world.imu_between(bus, last_imu.get(bus, t - NS_PER_S), t)
+            for i in range(len(imu)):
+                ti = int(imu.t_ns[i])
+                if bus not in filters or s_from_ns(ti - last_imu[bus]) > IMU_GAP_RESET_S:
+                    filters[bus] = BusFilter()
+                filters[bus].add_imu(ti, float(imu.gyro_z[i]), float(imu.accel_x[i]), float(imu.accel_y[i]),
+                                     float(imu.wheel_speed[i]))
+                last_imu[bus], wheel[bus] = ti, float(imu.wheel_speed[i])
             events = presence[bus].update(s.x, s.y) if s is not None else (
                 [("leave", None)] if presence[bus].current is not None else [])
             if s is None:
@@ -107,11 +137,15 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
                     for p in pipelines:
                         p.remove_vehicle(bus)
             if bus in in_session and t >= next_approach[bus]:
-                next_approach[bus] = t + int(APPROACH_REPEAT_S * NS_PER_S)
-                g = gnss.get(bus)
-                if g is not None and s_from_ns(t - g[0]) < GNSS_MAX_AGE_S:
+                next_approach[bus] = t + int(ANNOUNCE_PERIOD_S * NS_PER_S)
+                f = filters.get(bus)
+                est = f.estimate(max(t, f.head_ns)) if f is not None and f.initialized else None
+                c = announced_position(est, gnss.get(bus), wheel.get(bus), t)
+                if c is not None:
                     for p in pipelines:
-                        p.coarse_position(bus, *g)
+                        p.coarse_position(bus, c.t_ns, c.x, c.y, c.sigma_m,
+                                          None if c.vx is None else (c.vx, c.vy), c.velocity_sigma_mps or 0.0,
+                                          c.speed_mps)
         if not in_session:
             continue
         for bus in in_session:
@@ -136,10 +170,19 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
         for bus, vr in res.vehicles.items():
             seen = len(visible.get(bus, [])) >= 2
             tally.in_view += seen
+            if seen and (r, bus) not in seen_by:
+                tally.entering[bus] = t
+            elif not seen and (r, bus) in seen_by and tally.entering.pop(bus, None) is not None:
+                tally.entries_missed += 1
+            (seen_by.add if seen else seen_by.discard)((r, bus))
             if vr.fix is not None:
+                if bus in tally.entering:
+                    tally.acquire_delays_ms.append((t - tally.entering.pop(bus)) / 1e6)
                 tally.fixes += 1
                 tally.fixed_in_view += seen
                 last_fix[bus] = t
+                if bus in filters:
+                    filters[bus].add_fix(dataclasses.replace(vr.fix, clock_bound_ns=0), arrival_ns=t)
                 for o, p in enumerate(pipelines):
                     if o != r:
                         p.hint(bus, t, vr.fix.x, vr.fix.y, vr.fix.yaw, vr.fix.z)
@@ -149,6 +192,10 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
             "cores": round(sum(r["cores"] for r in per_rsu.values()), 4),
             "searches": sum(r["searches"] for r in per_rsu.values()),
             "searches_with_no_bus_in_view": sum(r["searches_with_no_bus_in_view"] for r in per_rsu.values()),
+            # A bus entering an RSU's view: how long until that RSU's first fix of it (all RSUs, all entries).
+            "view_entries": sum(r["view_entries"] for r in per_rsu.values()),
+            "view_entries_missed": sum(r["view_entries_missed"] for r in per_rsu.values()),
+            "acquire_delay_ms": _spread([d for t in tallies for d in t.acquire_delays_ms]),
             # What the bus's "ok" needs: a fix from some RSU in the last second, at every moment in session.
             "fix_fresh_in_session": round(covered / samples, 4) if samples else None,
             # ... which no RSU can give while none sees two of the bus's tags: the bound on the above.

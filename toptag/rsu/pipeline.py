@@ -34,7 +34,7 @@ from toptag.rsu.regions import (
     tag_region,
 )
 from toptag.rsu.tracking import SPEED_MARGIN, TrackSettings, VehicleTrack
-from toptag.rsu.whereabouts import ViewGrid, Whereabouts, tile_boxes
+from toptag.rsu.whereabouts import ReportedPosition, ViewGrid, Whereabouts, tile_boxes
 from toptag.solvers import PoseSolution, canonical_method, solve
 from toptag.solvers.calibrated import with_calibration
 from toptag.units import s_from_ns
@@ -76,9 +76,9 @@ class PipelineSettings(BaseModel):
     # distance the bus may have driven since).
     hint_max_age_s: float = 1.0
     hint_margin_m: float = 0.3
-    # The bus's own coarse position (GNSS, in its Approach) bounds where it can be, so that acquisition
-    # searches only there (or waits while that is out of view); trusted for this long, at 3 sigma plus
-    # the distance it may have driven since.
+    # The bus's own coarse position (its Approach's: GNSS, or its fused pose with velocity) bounds where
+    # it can be, so that acquisition searches only there (or waits while that is out of view); trusted
+    # for this long, at 3 sigma, moved on at its velocity (ReportedPosition.disc_at).
     coarse_max_age_s: float = 2.5
     # Acquisition searches only where an unfound bus can be (toptag.rsu.whereabouts): after a search in
     # vain, only where it can have come since. False: the whole frame every time.
@@ -167,7 +167,7 @@ class RsuPipeline:
         self._pools: dict[tuple[str, ...], _DetectorPool] = {}
         self._bands: dict[tuple[float, float], list[Band]] = {}
         self._hints: dict[str, VehicleTrack] = {}
-        self._coarse: dict[str, tuple[int, float, float, float]] = {}  # id -> (t_ns, x, y, sigma)
+        self._coarse: dict[str, ReportedPosition] = {}
         self._last_acquire_ns: int | None = None
         self._grids: dict[tuple[float, float], ViewGrid] = {}
         self._whereabouts: dict[str, Whereabouts] = {}
@@ -184,10 +184,13 @@ class RsuPipeline:
         self._coarse.pop(vehicle_id, None)
         self._whereabouts.pop(vehicle_id, None)
 
-    def coarse_position(self, vehicle_id: str, t_ns: int, x: float, y: float, sigma_m: float) -> None:
-        """The vehicle's own rough position (metres of error): bounds where acquisition searches."""
+    def coarse_position(self, vehicle_id: str, t_ns: int, x: float, y: float, sigma_m: float,
+                        velocity: tuple[float, float] | None = None, velocity_sigma: float = 0.0,
+                        speed: float | None = None) -> None:
+        """The vehicle's own rough position (metres of error), with its velocity or speed when it knows
+        them: bounds where acquisition searches."""
         if vehicle_id in self.vehicles:
-            self._coarse[vehicle_id] = (t_ns, x, y, sigma_m)
+            self._coarse[vehicle_id] = ReportedPosition(t_ns, x, y, sigma_m, velocity, velocity_sigma, speed)
 
     def _whereabouts_at(self, vid: str, t_ns: int) -> Whereabouts:
         """Where the unfound vehicle can be at t_ns: grown since the last frame, cut to its coarse
@@ -201,8 +204,8 @@ class RsuPipeline:
             wb = self._whereabouts[vid] = Whereabouts(self._grids[key], BUS_MAX_SPEED_MPS * SPEED_MARGIN)
         wb.advance(t_ns)
         c, h = self._coarse.get(vid), self._hints.get(vid)
-        if c is not None and s_from_ns(abs(t_ns - c[0])) <= self.settings.coarse_max_age_s:
-            wb.limit(c[1], c[2], 3 * c[3] + self._driven(c[0], t_ns))
+        if c is not None and s_from_ns(abs(t_ns - c.t_ns)) <= self.settings.coarse_max_age_s:
+            wb.limit(*c.disc_at(t_ns, BUS_MAX_SPEED_MPS * SPEED_MARGIN))
         if h is not None:
             wb.limit(h.pose[0], h.pose[1], self.settings.hint_margin_m + self._driven(h.t_ns, t_ns))
         return wb

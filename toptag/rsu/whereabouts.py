@@ -21,11 +21,50 @@ import cv2
 import numpy as np
 
 from toptag.camera import Camera
+from toptag.limits import BUS_MAX_DECEL_MPS2, BUS_MAX_SPEED_MPS, BUS_MAX_YAW_RATE
 from toptag.rsu.regions import Box
+from toptag.units import s_from_ns
 
 CELL_M = 1.0  # grid spacing; every disc and footprint is widened by a cell's half diagonal
 TILES = (16, 12)  # the image is searched by tiles: this many across and down
 MAX_RANGE_M = 80.0  # no grid beyond this distance from the camera's nadir (tags there are sub-pixel)
+
+
+# How far a bus's path can bend away from a constant-velocity prediction: braking or speeding up, and
+# the lateral acceleration of its tightest turn at top speed, in any direction.
+MAX_ACCEL_MPS2 = float(np.hypot(BUS_MAX_DECEL_MPS2, BUS_MAX_SPEED_MPS * BUS_MAX_YAW_RATE))
+
+
+@dataclass(frozen=True)
+class ReportedPosition:
+    """A bus's own report of where it is (the coarse position of its Approach): at t_ns, (x, y) with
+    sigma_m, and, when it knows them, its velocity (with the sigma of each component) or its speed."""
+
+    t_ns: int
+    x: float
+    y: float
+    sigma_m: float
+    velocity: tuple[float, float] | None = None
+    velocity_sigma: float = 0.0
+    speed: float | None = None
+
+    def disc_at(self, t_ns: int, top_speed: float) -> tuple[float, float, float]:
+        """(x, y, radius): where the bus's centre is at t_ns, surely. The position at 3 sigma, moved on
+        at the reported velocity; the radius grows with the age by the velocity's 3 sigma and by the
+        largest acceleration away from it (or, with a speed only, by how far it drives at that speed
+        plus acceleration). Never wider than the top speed allows."""
+        dt = s_from_ns(t_ns - self.t_ns)
+        age = abs(dt)
+        widest = 3 * self.sigma_m + top_speed * age
+        if self.velocity is not None:
+            vx, vy = self.velocity
+            r = (3 * float(np.hypot(self.sigma_m, self.velocity_sigma * age))
+                 + 0.5 * MAX_ACCEL_MPS2 * age * age)
+            if r < widest:
+                return self.x + vx * dt, self.y + vy * dt, r
+        elif self.speed is not None:
+            widest = min(widest, 3 * self.sigma_m + (self.speed + 0.5 * MAX_ACCEL_MPS2 * age) * age)
+        return self.x, self.y, widest
 
 
 @dataclass(frozen=True)
