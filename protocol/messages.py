@@ -152,11 +152,15 @@ class CoarsePosition(BaseModel):
     vy: float | None = None
     velocity_sigma_mps: float | None = Field(default=None, ge=0)
     speed_mps: float | None = Field(default=None, ge=0)
+    yaw: float | None = None  # heading (rad), with its sigma: a fused pose's; lets an RSU crop for the tags
+    yaw_sigma_rad: float | None = Field(default=None, ge=0)
 
     @model_validator(mode="after")
     def _velocity_whole(self) -> CoarsePosition:
         if (self.vx is None) != (self.vy is None) or (self.vx is not None and self.velocity_sigma_mps is None):
             raise ValueError("vx, vy and velocity_sigma_mps come together")
+        if (self.yaw is None) != (self.yaw_sigma_rad is None):
+            raise ValueError("yaw and yaw_sigma_rad come together")
         return self
 
 

@@ -60,7 +60,8 @@ def test_the_agent_announces_its_filters_pose_with_velocity_else_gnss_with_speed
     c = announced_position(est, gnss, speed, est.t_ns)
     assert c.source == "fused" and (c.x, c.y) == (est.x, est.y)
     assert (c.vx, c.vy) == pytest.approx((speed * math.cos(yaw), speed * math.sin(yaw)), abs=0.2)
-    assert 0 < c.velocity_sigma_mps < 1.0 and c.sigma_m == pytest.approx(est.health.pos_sigma_m)
+    assert 0 < c.velocity_sigma_mps < 1.0 and c.yaw == est.yaw and 0 < c.yaw_sigma_rad < 0.1
+    assert est.health.pos_sigma_m < c.sigma_m < est.health.pos_sigma_m + 0.2  # never below a floor
     g = announced_position(None, gnss, -speed, S)  # before a fix has started the filter
     assert g.source == "gnss" and g.speed_mps == speed and g.vx is None
     assert announced_position(None, gnss, speed, 6 * S) is None  # GNSS too old, no filter: nothing
@@ -108,6 +109,48 @@ def test_a_bus_that_cannot_reach_the_view_is_not_searched_one_that_can_is(bus_pa
     vague.coarse_position(bus.id, t_ns, truth[0] + 25.0, truth[1] + 25.0, 12.0, velocity=(0.0, 0.0),
                           velocity_sigma=0.5)
     assert vague.process(Decoder(img), t_ns).acquired
+
+
+def test_a_sure_report_with_heading_is_cropped_for_like_another_rsus_fix(bus_pass):
+    """A fused pose with heading, 0.3 s old and sure to a few cm: the RSU crops where the tags must be
+    (no search); out of view, it does not even decode; after a few fruitless crops, it searches again."""
+    camera, bus, frames = bus_pass
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    i = shown[len(shown) // 2]
+    t_ns, img, truth, _ = frames[i]
+    j = i - 3
+    vel = _velocity(frames, j)
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    p.coarse_position(bus.id, frames[j][0], frames[j][2][0], frames[j][2][1], 0.05, velocity=vel, velocity_sigma=0.1,
+                      yaw=frames[j][2][2], yaw_sigma=0.01)
+    res = p.process(Decoder(img), t_ns)
+    vr = res.vehicles[bus.id]
+    assert vr.mode == "hinted" and not res.acquired and vr.fix is not None
+    assert np.hypot(vr.fix.x - truth[0], vr.fix.y - truth[1]) < 0.3
+    # The same report, 40 m off behind the camera: no tag region in the image, nothing decoded.
+    q = RsuPipeline(camera)
+    q.add_vehicle(bus)
+    q.coarse_position(bus.id, t_ns, -50.0, -45.0, 0.05, velocity=(-3.0, -3.0), velocity_sigma=0.1, yaw=-2.4,
+                      yaw_sigma=0.01)
+    frame = Decoder(img)
+    assert q.process(frame, t_ns).vehicles[bus.id].mode == "out_of_view" and frame.calls == 0
+    # A report that is wrong (the bus 7 m from where it says, both in view): crops find nothing; after
+    # three frames, the bus is searched for again, and found.
+    w = RsuPipeline(camera)
+    w.add_vehicle(bus)
+    modes = []
+    for k in range(i, min(i + 8, len(frames))):
+        t_k, img_k, pose, _ = frames[k]
+        aim = camera.backproject_to_plane(np.array([[480.0, 360.0]]), pose[3])[0, :2] - np.asarray(pose[:2])
+        off = 7.0 * aim / np.linalg.norm(aim)  # toward the image's centre: the wrong place is in view too
+        w.coarse_position(bus.id, t_k, pose[0] + off[0], pose[1] + off[1], 0.05, velocity=(0.0, 0.0),
+                          velocity_sigma=0.1, yaw=pose[2], yaw_sigma=0.01)
+        res = w.process(img_k, t_k)
+        modes.append(res.vehicles[bus.id].mode)
+        if res.vehicles[bus.id].fix is not None:
+            break
+    assert modes[:3] == ["searching"] * 3 and w.tracks[bus.id].found
 
 
 def test_a_bus_entering_the_view_is_acquired_as_soon_as_without_its_whereabouts(bus_pass):

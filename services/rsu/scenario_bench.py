@@ -145,7 +145,7 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
                     for p in pipelines:
                         p.coarse_position(bus, c.t_ns, c.x, c.y, c.sigma_m,
                                           None if c.vx is None else (c.vx, c.vy), c.velocity_sigma_mps or 0.0,
-                                          c.speed_mps)
+                                          c.speed_mps, c.yaw, c.yaw_sigma_rad or 0.0)
         if not in_session:
             continue
         for bus in in_session:

@@ -183,7 +183,7 @@ class RsuService:
         if p is not None:
             self.pipeline.coarse_position(a.bus_id, p.t_ns, p.x, p.y, p.sigma_m,
                                           None if p.vx is None else (p.vx, p.vy), p.velocity_sigma_mps or 0.0,
-                                          p.speed_mps)
+                                          p.speed_mps, p.yaw, p.yaw_sigma_rad or 0.0)
 
     def _end_session(self, bus: str, why: str) -> None:
         if self._sessions.pop(bus, None) is None:

@@ -76,6 +76,13 @@ class PipelineSettings(BaseModel):
     # distance the bus may have driven since).
     hint_max_age_s: float = 1.0
     hint_margin_m: float = 0.3
+    # The bus's own fused pose (its Approach's whereabouts, with heading and velocity), when it is this
+    # sure at the frame's time (position margin, heading margin), is tracked from like another RSU's fix:
+    # crops where its tags must be, or nothing when none is in view. After report_hint_misses frames of
+    # crops that found nothing, it only bounds the search again (until this camera fixes the bus).
+    report_hint_max_radius_m: float = 1.5
+    report_hint_max_yaw_rad: float = 0.4
+    report_hint_misses: int = 3
     # The bus's own coarse position (its Approach's: GNSS, or its fused pose with velocity) bounds where
     # it can be, so that acquisition searches only there (or waits while that is out of view); trusted
     # for this long, at 3 sigma, moved on at its velocity (ReportedPosition.disc_at).
@@ -168,6 +175,7 @@ class RsuPipeline:
         self._bands: dict[tuple[float, float], list[Band]] = {}
         self._hints: dict[str, VehicleTrack] = {}
         self._coarse: dict[str, ReportedPosition] = {}
+        self._report_misses: dict[str, int] = {}
         self._last_acquire_ns: int | None = None
         self._grids: dict[tuple[float, float], ViewGrid] = {}
         self._whereabouts: dict[str, Whereabouts] = {}
@@ -182,15 +190,17 @@ class RsuPipeline:
         self.tracks.pop(vehicle_id, None)
         self._hints.pop(vehicle_id, None)
         self._coarse.pop(vehicle_id, None)
+        self._report_misses.pop(vehicle_id, None)
         self._whereabouts.pop(vehicle_id, None)
 
     def coarse_position(self, vehicle_id: str, t_ns: int, x: float, y: float, sigma_m: float,
                         velocity: tuple[float, float] | None = None, velocity_sigma: float = 0.0,
-                        speed: float | None = None) -> None:
-        """The vehicle's own rough position (metres of error), with its velocity or speed when it knows
-        them: bounds where acquisition searches."""
+                        speed: float | None = None, yaw: float | None = None, yaw_sigma: float = 0.0) -> None:
+        """The vehicle's own rough position (metres of error), with its velocity or speed, and heading,
+        when it knows them: bounds where acquisition searches, or, when sure enough, where to crop."""
         if vehicle_id in self.vehicles:
-            self._coarse[vehicle_id] = ReportedPosition(t_ns, x, y, sigma_m, velocity, velocity_sigma, speed)
+            self._coarse[vehicle_id] = ReportedPosition(t_ns, x, y, sigma_m, velocity, velocity_sigma, speed, yaw,
+                                                        yaw_sigma, self.vehicles[vehicle_id].height)
 
     def _whereabouts_at(self, vid: str, t_ns: int) -> Whereabouts:
         """Where the unfound vehicle can be at t_ns: grown since the last frame, cut to its coarse
@@ -241,7 +251,8 @@ class RsuPipeline:
             return result
         pool = self._pool()
         tracked = [vid for vid, tr in self.tracks.items() if tr.found and self.settings.tracking]
-        hinted = [vid for vid in self.vehicles if vid not in tracked and self._fresh_hint(vid, t_ns)]
+        hints = {vid: self._hint_at(vid, t_ns) for vid in self.vehicles if vid not in tracked}
+        hinted = [vid for vid, h in hints.items() if h is not None]
         rest = [vid for vid in self.vehicles if vid not in tracked and vid not in hinted]
         t0 = time.perf_counter()
         where = {vid: self._whereabouts_at(vid, t_ns) for vid in rest} if self._bounded() else {}
@@ -267,7 +278,7 @@ class RsuPipeline:
         jobs: list[DetectJob] = []
         regions_of: dict[str, int] = {}
         for vid in tracked + hinted:
-            track, extra = (self.tracks[vid], 0.0) if vid in tracked else (self._hints[vid], self.settings.hint_margin_m)
+            track, extra = (self.tracks[vid], 0.0) if vid in tracked else hints[vid]
             vjobs = self._tracking_jobs(self.vehicles[vid], track, t_ns, extra)
             regions_of[vid] = len(vjobs)
             jobs += vjobs
@@ -279,7 +290,11 @@ class RsuPipeline:
         observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
         for vid in tracked + hinted:
             mode = "tracked" if vid in tracked else ("hinted" if regions_of[vid] else "out_of_view")
-            done(self._conclude(vid, observed.get(vid, []), mode, t_ns, seq, regions_of[vid]))
+            vr = self._conclude(vid, observed.get(vid, []), mode, t_ns, seq, regions_of[vid])
+            if vid in hinted and isinstance(hints[vid][0], ReportedPosition):
+                if vr.fix is None and regions_of[vid] > 0:
+                    self._report_misses[vid] = self._report_misses.get(vid, 0) + 1
+            done(vr)
         t2 = time.perf_counter()
         result.solve_ms = (t2 - t1) * 1e3
 
@@ -326,6 +341,7 @@ class RsuPipeline:
         if sol is not None and sol.ok:
             self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
             self._whereabouts.pop(vid, None)
+            self._report_misses.pop(vid, None)
         elif mode == "tracked":
             self._lost_track(vid)
         if sol is None and mode not in ("waiting", "out_of_view"):
@@ -383,9 +399,22 @@ class RsuPipeline:
                 jobs.append(DetectJob(box, b.decimate, b.upsample, thorough))
         return jobs
 
-    def _fresh_hint(self, vid: str, t_ns: int) -> bool:
+    def _hint_at(self, vid: str, t_ns: int):
+        """(what predicts the unfound vehicle's pose, extra margin) to crop for its tags: another RSU's
+        fresh fix, else its own report when sure enough; None: it is to be searched for."""
+        s = self.settings
         h = self._hints.get(vid)
-        return h is not None and s_from_ns(abs(t_ns - h.t_ns)) <= self.settings.hint_max_age_s
+        if h is not None and s_from_ns(abs(t_ns - h.t_ns)) <= s.hint_max_age_s:
+            return h, s.hint_margin_m
+        c = self._coarse.get(vid)
+        if (c is None or c.yaw is None or c.velocity is None or not self._bounded()
+                or s_from_ns(abs(t_ns - c.t_ns)) > s.hint_max_age_s
+                or self._report_misses.get(vid, 0) >= s.report_hint_misses):
+            return None
+        p = c.predict(t_ns)
+        if p.pos_radius > s.report_hint_max_radius_m or p.yaw_margin > s.report_hint_max_yaw_rad:
+            return None
+        return c, s.hint_margin_m
 
     def _tracking_jobs(self, vehicle: Vehicle, track: VehicleTrack, t_ns: int, extra_radius: float = 0.0) -> list[DetectJob]:
         p = track.predict(t_ns, extra_radius)

@@ -23,6 +23,7 @@ import numpy as np
 from toptag.camera import Camera
 from toptag.limits import BUS_MAX_DECEL_MPS2, BUS_MAX_SPEED_MPS, BUS_MAX_YAW_RATE
 from toptag.rsu.regions import Box
+from toptag.rsu.tracking import PosePrediction
 from toptag.units import s_from_ns
 
 CELL_M = 1.0  # grid spacing; every disc and footprint is widened by a cell's half diagonal
@@ -33,6 +34,7 @@ MAX_RANGE_M = 80.0  # no grid beyond this distance from the camera's nadir (tags
 # How far a bus's path can bend away from a constant-velocity prediction: braking or speeding up, and
 # the lateral acceleration of its tightest turn at top speed, in any direction.
 MAX_ACCEL_MPS2 = float(np.hypot(BUS_MAX_DECEL_MPS2, BUS_MAX_SPEED_MPS * BUS_MAX_YAW_RATE))
+REPORT_Z_MARGIN_M = 0.3  # a report has no roof height: the vehicle's, give or take bounce and load
 
 
 @dataclass(frozen=True)
@@ -47,24 +49,38 @@ class ReportedPosition:
     velocity: tuple[float, float] | None = None
     velocity_sigma: float = 0.0
     speed: float | None = None
+    yaw: float | None = None  # heading, with its sigma (a fused pose's)
+    yaw_sigma: float = 0.0
+    z: float = 0.0  # the roof's height (the vehicle's), for predict
 
     def disc_at(self, t_ns: int, top_speed: float) -> tuple[float, float, float]:
         """(x, y, radius): where the bus's centre is at t_ns, surely. The position at 3 sigma, moved on
         at the reported velocity; the radius grows with the age by the velocity's 3 sigma and by the
         largest acceleration away from it (or, with a speed only, by how far it drives at that speed
         plus acceleration). Never wider than the top speed allows."""
-        dt = s_from_ns(t_ns - self.t_ns)
-        age = abs(dt)
+        age = abs(s_from_ns(t_ns - self.t_ns))
         widest = 3 * self.sigma_m + top_speed * age
         if self.velocity is not None:
-            vx, vy = self.velocity
-            r = (3 * float(np.hypot(self.sigma_m, self.velocity_sigma * age))
-                 + 0.5 * MAX_ACCEL_MPS2 * age * age)
+            x, y, r = self._moved_on(t_ns)
             if r < widest:
-                return self.x + vx * dt, self.y + vy * dt, r
+                return x, y, r
         elif self.speed is not None:
             widest = min(widest, 3 * self.sigma_m + (self.speed + 0.5 * MAX_ACCEL_MPS2 * age) * age)
         return self.x, self.y, widest
+
+
+    def _moved_on(self, t_ns: int) -> tuple[float, float, float]:
+        dt = s_from_ns(t_ns - self.t_ns)
+        r = 3 * float(np.hypot(self.sigma_m, self.velocity_sigma * dt)) + 0.5 * MAX_ACCEL_MPS2 * dt * dt
+        return self.x + self.velocity[0] * dt, self.y + self.velocity[1] * dt, r
+
+    def predict(self, t_ns: int, extra_radius: float = 0.0) -> PosePrediction:
+        """The pose at t_ns with margins that hold it (as VehicleTrack.predict, for tag crops): needs
+        a velocity and a heading."""
+        x, y, r = self._moved_on(t_ns)
+        age = abs(s_from_ns(t_ns - self.t_ns))
+        return PosePrediction(x, y, float(self.yaw), self.z, r + extra_radius,
+                              3 * self.yaw_sigma + BUS_MAX_YAW_RATE * age, REPORT_Z_MARGIN_M)
 
 
 @dataclass(frozen=True)
