@@ -93,6 +93,21 @@ class _Tag:
     levels: np.ndarray  # (N, N) float32 grey levels
     n: int
     plate_world: np.ndarray  # (4, 3)
+    # (xn0, xn1, yn0, yn1): normalized coords outside which no ray meets the printed grid (None: unknown).
+    bounds: tuple[float, float, float, float] | None = None
+
+
+def _grid_bounds(H: np.ndarray, n: int) -> tuple[float, float, float, float] | None:
+    """The normalized-coordinate box of the tag's n x n grid seen from the camera. H's third row is the
+    world z of the ray (xn, yn, 1): a grid corner lies ahead of the camera iff that is negative (the roof
+    is below it). With all four ahead, the grid (convex) projects inside the box of its corners; a
+    margin far above rounding keeps it conservative."""
+    corners = np.linalg.solve(H, np.array([[0.0, 0, n, n], [0, n, 0, n], [1, 1, 1, 1]]))
+    if not np.all(corners[2] < 0):
+        return None
+    xn, yn = corners[0] / corners[2], corners[1] / corners[2]
+    m = 1e-7
+    return float(xn.min()) - m, float(xn.max()) + m, float(yn.min()) - m, float(yn.max()) + m
 
 
 @dataclass
@@ -155,7 +170,7 @@ def _tag_layers(pv: PlacedVehicle, camera: Camera, model: ImageModel) -> list[_T
         cells = tag_cells(v.family, tid)
         levels = np.where(cells > 127, model.tag_white, model.tag_black).astype(np.float32)
         plate = vehicle_to_world(v.plate_corners(tid), pv.x, pv.y, pv.yaw, zr)
-        out.append(_Tag(H, levels, n, plate))
+        out.append(_Tag(H, levels, n, plate, _grid_bounds(H, n)))
     return out
 
 
@@ -191,17 +206,26 @@ def _face_colors(box: _Box) -> np.ndarray:
 
 
 def _tag_values(tags: list[_Tag], xn, yn, base):
-    """Colour of roof points seen along normalized rays (xn, yn): tag level inside a plate, else base."""
+    """Colour of roof points seen along normalized rays (xn, yn): tag level inside a plate, else base.
+    Only the rays within a tag's bounds are mapped into its grid (the others cannot meet it)."""
     out = np.array(base, dtype=np.float32, copy=True)
     for tg in tags:
+        if tg.bounds is not None:
+            b = tg.bounds
+            sel = np.nonzero((xn >= b[0]) & (xn <= b[1]) & (yn >= b[2]) & (yn <= b[3]))
+            if not len(sel[0]):
+                continue
+            x, y = xn[sel], yn[sel]
+        else:
+            sel, x, y = ..., xn, yn
         H = tg.H
-        w = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
-        r = (H[0, 0] * xn + H[0, 1] * yn + H[0, 2]) / w
-        c = (H[1, 0] * xn + H[1, 1] * yn + H[1, 2]) / w
+        w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+        r = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
+        c = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
         inside = (r >= 0) & (r < tg.n) & (c >= 0) & (c < tg.n)
         ri = np.clip(r, 0, tg.n - 1).astype(np.intp)
         ci = np.clip(c, 0, tg.n - 1).astype(np.intp)
-        out = np.where(inside, tg.levels[ri, ci], out)
+        out[sel] = np.where(inside, tg.levels[ri, ci], out[sel])
     return out
 
 
@@ -215,19 +239,29 @@ def _ray_box(box: _Box, camera: Camera, xn, yn, colors, tags):
     t_near = np.full(xn.shape, -np.inf)
     t_far = np.full(xn.shape, np.inf)
     label = np.zeros(xn.shape, np.intp)
+    # The slab test with every temporary reused in place (the same IEEE operations as the plain
+    # expressions, so the same bits: these rays are most of a vehicle's cost).
+    d, t1, t2, tmp = (np.empty(xn.shape) for _ in range(4))
+    better, neg = np.empty(xn.shape, bool), np.empty(xn.shape, bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         # (face entered when the ray runs toward -k, face entered when it runs toward +k)
         for k, (neg_face, pos_face) in enumerate(((FRONT, REAR), (LEFT, RIGHT), (ROOF, 0))):
-            d = M[k, 0] * xn + M[k, 1] * yn + M[k, 2]
-            t1 = (lo[k] - o[k]) / d
-            t2 = (hi[k] - o[k]) / d
-            tmin = np.minimum(t1, t2)
-            tmax = np.maximum(t1, t2)
-            better = tmin > t_near
+            np.multiply(xn, M[k, 0], out=d)
+            np.multiply(yn, M[k, 1], out=tmp)
+            d += tmp
+            d += M[k, 2]
+            np.divide(lo[k] - o[k], d, out=t1)
+            np.divide(hi[k] - o[k], d, out=t2)
+            np.maximum(t1, t2, out=tmp)
+            np.minimum(t_far, tmp, out=t_far)
+            np.minimum(t1, t2, out=tmp)
+            np.greater(tmp, t_near, out=better)
             # Entering through the low face when the ray goes +k, the high face when it goes -k.
-            label = np.where(better, np.where(d < 0, neg_face, pos_face), label)
-            t_near = np.where(better, tmin, t_near)
-            t_far = np.minimum(t_far, tmax)
+            np.less(d, 0, out=neg)
+            np.copyto(label, pos_face, where=better)
+            neg &= better
+            np.copyto(label, neg_face, where=neg)
+            np.copyto(t_near, tmp, where=better)
     hit = (t_near <= t_far) & (t_near > 0) & (label > 0)
     col = colors[np.where(hit, label, 0)]
     if tags:
@@ -270,19 +304,20 @@ def _subsample_rays(rast: CameraRaster, ys: np.ndarray, xs: np.ndarray, offsets:
     H, W = rast.height, rast.width
     xm, xp = np.maximum(xs - 1, 0), np.minimum(xs + 1, W - 1)
     ym, yp = np.maximum(ys - 1, 0), np.minimum(ys + 1, H - 1)
-    X, Y = rast.xn, rast.yn
+    X, Y = rast.xn.ravel(), rast.yn.ravel()  # flat indices: one gather each instead of two
+    row = ys * W
+    here, left, right, up, down = row + xs, row + xm, row + xp, ym * W + xs, yp * W + xs
     sx = (xp - xm).astype(np.float64)
     sy = (yp - ym).astype(np.float64)
-    x0 = X[ys, xs].astype(np.float64)
-    y0 = Y[ys, xs].astype(np.float64)
-    xu = (X[ys, xp] - X[ys, xm]) / sx
-    yu = (Y[ys, xp] - Y[ys, xm]) / sx
-    xv = (X[yp, xs] - X[ym, xs]) / sy
-    yv = (Y[yp, xs] - Y[ym, xs]) / sy
     ou, ov = offsets[:, 0][None, :], offsets[:, 1][None, :]
-    xn = x0[:, None] + xu[:, None] * ou + xv[:, None] * ov
-    yn = y0[:, None] + yu[:, None] * ou + yv[:, None] * ov
-    return xn, yn
+
+    def lattice(A):  # A[here] + A_u * ou + A_v * ov, with A_u, A_v the central differences
+        out = ((A[right] - A[left]) / sx)[:, None] * ou
+        out += A[here].astype(np.float64)[:, None]
+        out += ((A[down] - A[up]) / sy)[:, None] * ov
+        return out
+
+    return lattice(X), lattice(Y)
 
 
 # ---- one layer ----------------------------------------------------------------------------------
