@@ -108,6 +108,8 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
     last_fix: dict[str, int] = {}
     covered = samples = 0
     viewed = view_samples = 0  # (first RSU's frame, bus in session): two of its tags in some RSU's view
+    # per bus, over the first RSU's frames while in session: [samples, in view, fix fresh, both]
+    by_bus: dict[str, list[int]] = defaultdict(lambda: [0, 0, 0, 0])
     for r, t, jpeg in frames:
         truth = world.truth_at(t)
         for bus in world.bus_ids:
@@ -153,7 +155,14 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
             covered += bus in last_fix and s_from_ns(t - last_fix[bus]) <= FIX_FRESH_S
             if r == 0:
                 view_samples += 1
-                viewed += any(len(world.tags_in_view(c.id, t).get(bus, [])) >= 2 for c in world.cameras)
+                seen = any(len(world.tags_in_view(c.id, t).get(bus, [])) >= 2 for c in world.cameras)
+                fresh = bus in last_fix and s_from_ns(t - last_fix[bus]) <= FIX_FRESH_S
+                viewed += seen
+                tally_bus = by_bus[bus]
+                tally_bus[0] += 1
+                tally_bus[1] += seen
+                tally_bus[2] += fresh
+                tally_bus[3] += seen and fresh
         pipe, tally = pipelines[r], tallies[r]
         c0 = time.process_time()
         res = pipe.process(lambda: cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE), t)
@@ -200,6 +209,12 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
             "fix_fresh_in_session": round(covered / samples, 4) if samples else None,
             # ... which no RSU can give while none sees two of the bus's tags: the bound on the above.
             "tags_in_view_in_session": round(viewed / view_samples, 4) if view_samples else None,
+            # Per bus: the share of its session with two tags in some RSU's view, and how often a fix was
+            # fresh over its session and while in view (what "fused ok while in view" would measure).
+            "buses": {b: {"session_s": round(n[0] / world.fps[0], 1), "tags_in_view_in_session": round(n[1] / n[0], 4),
+                          "fix_fresh_in_session": round(n[2] / n[0], 4),
+                          "fix_fresh_in_view": round(n[3] / n[1], 4) if n[1] else None}
+                      for b, n in sorted(by_bus.items())},
             "fix_rate_in_view": round(sum(t.fixed_in_view for t in tallies) / in_view, 4) if in_view else None}
 
 
