@@ -459,7 +459,7 @@ def test_the_real_services_work_under_the_access_control(pki, secure_router, cli
             frame_pub.put(Frame(rsu_id="rsu-sw", capture_time_ns=t, seq=seq, encoding="jpeg", width=camera.width,
                                 height=camera.height, image=frames[seq % len(frames)]))
             if seq % 2 == 0:
-                gnss_pub.put(GnssFix(bus_id="bus-17", t_ns=t, x=-30.0, y=-1.85, sigma_m=2.0))
+                gnss_pub.put(GnssFix(bus_id="bus-17", t_ns=t, x=-1.0, y=-1.85, sigma_m=2.0))  # where the frames show it
             seq += 1
             stop.wait(0.1)
 

@@ -21,7 +21,9 @@ SITE = bundled_scenario_path().parent
 CAMERA = SITE / "rsu-sw.json"
 BUS = SITE / "bus-17.json"
 MAP = SITE / "map.json"
-INSIDE, OUTSIDE = (-30.0, -1.85), (-80.0, -1.85)  # the approach radius of x1 is 45 m
+# The approach radius of x1 is 45 m. Inside, the satellite position is where the frames show the bus (the
+# middle of its pass): the bus announces it, and the RSU searches only where it can be.
+INSIDE, OUTSIDE = (-1.0, -1.85), (-80.0, -1.85)
 
 
 @pytest.fixture(scope="module")
