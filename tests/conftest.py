@@ -19,17 +19,20 @@ from toptag.waiting import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Lines a test module wants printed in the terminal summary (figures of a system test, such as timings):
-# config.stash[SUMMARY_LINES].append(line).
-SUMMARY_LINES = pytest.StashKey[list]()
-
-
-def pytest_configure(config):
-    config.stash[SUMMARY_LINES] = []
+# A line a test wants printed in the terminal summary (figures of a system test, such as timings):
+# request.node.user_properties.append((f"{SUMMARY}:<name>", line)); the last line of each name is printed.
+# User properties travel with the test reports, so this works under pytest-xdist as well.
+SUMMARY = "summary"
 
 
 def pytest_terminal_summary(terminalreporter, config):
-    for line in config.stash.get(SUMMARY_LINES, []):
+    lines: dict[str, str] = {}
+    for reports in terminalreporter.stats.values():
+        for rep in reports:
+            for name, value in getattr(rep, "user_properties", ()):
+                if isinstance(name, str) and name.startswith(SUMMARY + ":"):
+                    lines[name] = value
+    for line in lines.values():
         terminalreporter.write_line(line)
 
 

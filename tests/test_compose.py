@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import SUMMARY_LINES, assert_fused_claims_hold
+from conftest import SUMMARY, assert_fused_claims_hold
 from dockerhost import (
     STANDIN_PYTHON,
     DockerUnavailable,
@@ -46,6 +46,18 @@ BUSES = ("bus-17", "bus-42")
 DURATION_S = 40  # the monitor's span from the first bus message: bus-42 in view ~4-10 s and from ~31 s,
 #                 bus-17 ~8-18 s (the bundled scenario)
 TIMINGS: dict[str, str] = {}
+ENGINE: dict[str, str] = {}
+
+
+@pytest.fixture(autouse=True)
+def _timings_in_summary(request):
+    """The timings so far, as a line of the terminal summary (user properties reach the summary from an
+    xdist worker too; the last test's line holds them all)."""
+    yield
+    if TIMINGS:
+        request.node.user_properties.append((f"{SUMMARY}:compose",
+            f"compose system test (engine {ENGINE.get('engine')}, compose {ENGINE.get('compose')}): " +
+            "; ".join(f"{k} {v}" for k, v in TIMINGS.items())))
 
 
 def _timed(name: str, t0: float) -> float:
@@ -63,7 +75,7 @@ def _official_images() -> tuple[str, str]:
 
 
 @pytest.fixture(scope="module")
-def docker_host(tmp_path_factory, request):
+def docker_host(tmp_path_factory):
     """A running engine, the compose command, the override files for stand-ins, the image built once."""
     work = tmp_path_factory.mktemp("docker")
     engine = Engine(work)
@@ -88,6 +100,7 @@ def docker_host(tmp_path_factory, request):
             overrides.append(CI / "ci.standin-router.yaml")
         host.update({"cmd": cmd, "overrides": overrides, "work": work, "engine": engine.server_version,
                      "compose": compose_version(cmd)})
+        ENGINE.update(engine=host["engine"], compose=host["compose"])
         t0 = time.monotonic()
         run([*cmd, *_project(host, "toptag-ci-build", run_files=False), "build"], timeout=1200)
         _timed("image build (compose build)", t0)
@@ -98,10 +111,6 @@ def docker_host(tmp_path_factory, request):
         if left:
             run(["docker", "rm", "-f", *left], check=False)
         engine.stop()
-        if TIMINGS:
-            request.config.stash[SUMMARY_LINES].append(
-                f"compose system test (engine {engine.server_version}, compose {host.get('compose')}): " +
-                "; ".join(f"{k} {v}" for k, v in TIMINGS.items()))
 
 
 def _leftover_containers() -> list[str]:
