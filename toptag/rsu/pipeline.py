@@ -332,13 +332,10 @@ class RsuPipeline:
         """Solve one vehicle from its observations in this frame and update its track."""
         vehicle = self.vehicles[vid]
         sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None
-        calib = None
+        fix = None
         if sol is not None and sol.ok:
-            alone = np.array(sol.covariance, float)
-            sol = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
-            calib = np.asarray(sol.covariance, float) - alone  # that share: every fix of this camera has it
-            calib = calib if np.any(calib) else None
-        if sol is not None and sol.ok:
+            calib = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
+            fix = Fix.from_solution(sol, t_ns, self.camera.id, seq, calib)
             self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
             self._whereabouts.pop(vid, None)
             self._report_misses.pop(vid, None)
@@ -346,7 +343,6 @@ class RsuPipeline:
             self._lost_track(vid)
         if sol is None and mode not in ("waiting", "out_of_view"):
             mode = "searching"
-        fix = Fix.from_solution(sol, t_ns, self.camera.id, seq, calib) if sol is not None and sol.ok else None
         return VehicleResult(vid, sol, mode, regions, obs, fix)
 
     def _bounded(self) -> bool:

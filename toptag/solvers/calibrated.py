@@ -59,12 +59,14 @@ def calibration_covariance(vehicle: Vehicle, observations: list[TagObservation],
     return total[:3, :3]
 
 
-def with_calibration(vehicle: Vehicle, observations: list[TagObservation], solution: PoseSolution) -> PoseSolution:
-    """The solution with the cameras' calibration covariance added to its covariance (in place)."""
-    if solution.ok:
-        try:
-            add = calibration_covariance(vehicle, observations, solution)
-        except np.linalg.LinAlgError:
-            return solution
-        solution.covariance = np.asarray(solution.covariance, float) + add
-    return solution
+def with_calibration(vehicle: Vehicle, observations: list[TagObservation], solution: PoseSolution) -> np.ndarray | None:
+    """Adds the cameras' calibration covariance to the (ok) solution's covariance, in place, and returns
+    that share (what every fix of these cameras has in common); None when they state none."""
+    if not solution.ok:
+        return None
+    try:
+        add = calibration_covariance(vehicle, observations, solution)
+    except np.linalg.LinAlgError:
+        return None
+    solution.covariance = np.asarray(solution.covariance, float) + add
+    return add if np.any(add) else None
