@@ -149,9 +149,7 @@ class BusAgent:
         if est is not None and est.health.status == "ok":
             sigma = float(np.sqrt(max(est.cov[0, 0], est.cov[1, 1], 1e-6)))
             return CoarsePosition(t_ns=now_ns, x=est.x, y=est.y, sigma_m=sigma, source="fused")
-        if gnss is not None and s_from_ns(now_ns - gnss.t_ns) < GNSS_MAX_AGE_S:
-            return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss")
-        return None
+        return gnss_position(gnss, now_ns)
 
     def whereabouts(self, now_ns: int) -> CoarsePosition | None:
         """What the Approach tells the RSUs of where the bus is (announced_position)."""
@@ -287,11 +285,17 @@ def announced_position(est, gnss: GnssFix | None, wheel_speed: float | None, now
         return CoarsePosition(t_ns=est.t_ns, x=est.x, y=est.y, sigma_m=math.hypot(est.health.pos_sigma_m, floor),
                               source="fused", vx=est.speed * c, vy=est.speed * s, velocity_sigma_mps=v_sigma,
                               yaw=est.yaw, yaw_sigma_rad=math.sqrt(max(P[2, 2], 0.0)))
-    if gnss is not None and s_from_ns(now_ns - gnss.t_ns) < GNSS_MAX_AGE_S:
-        speed = None if wheel_speed is None or not math.isfinite(wheel_speed) else abs(wheel_speed)
-        return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss",
-                              speed_mps=speed)
-    return None
+    speed = None if wheel_speed is None or not math.isfinite(wheel_speed) else abs(wheel_speed)
+    return gnss_position(gnss, now_ns, speed)
+
+
+def gnss_position(gnss: GnssFix | None, now_ns: int, speed_mps: float | None = None) -> CoarsePosition | None:
+    """The latest GNSS fix as a coarse position (None when there is none or it is too old to say
+    where the bus is)."""
+    if gnss is None or s_from_ns(now_ns - gnss.t_ns) >= GNSS_MAX_AGE_S:
+        return None
+    return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss",
+                          speed_mps=speed_mps)
 
 
 def build_parser() -> argparse.ArgumentParser:
