@@ -865,8 +865,8 @@ class BusFilter:
             # A flagged RSU's offset is held at its prior: what that implies is a constant bias of its
             # fixes (else it could not clear). Unflagged, the offset is learnt from them, and no flag is
             # raised while it is uncertain (drift_max_offset_sigma_ms).
-            B = sum(b for b in (calib, off_cov if rec.flagged else None) if b is not None)
-            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, S, None if isinstance(B, int) else B)
+            shares = [b for b in (calib, off_cov if rec.flagged else None) if b is not None]
+            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, S, sum(shares) if shares else None)
             sd = 0.0 if offset_before is None else math.sqrt(max(offset_before[1], 0.0))
             rec = self._drift.decide(rsus, rsu, fix.t_ns, sd)
         else:

@@ -131,8 +131,9 @@ class RsuRecord(NamedTuple):
         return self.deviation_stat if self.deviation is not None else self.stat
 
 
-def _add_past(past: tuple | None, current: tuple, t_ns: int, decay: float = 1.0) -> tuple:
-    """Earlier passes' deviations (information form, weighed by `decay`) plus one more (d, C, n)."""
+def _add_past(past: tuple | None, current: tuple, t_ns: int, window_s: float) -> tuple:
+    """Earlier passes' deviations (information form, faded over `window_s` since they were added up)
+    plus one more (d, C, n) at t_ns."""
     d, C, n = current
     try:
         I = np.linalg.inv(C)
@@ -140,6 +141,7 @@ def _add_past(past: tuple | None, current: tuple, t_ns: int, decay: float = 1.0)
         return past
     if past is None:
         return I, I @ d, float(n), int(t_ns)
+    decay = math.exp(-s_from_ns(max(0, t_ns - past[3])) / window_s)
     return decay * past[0] + I, decay * past[1] + I @ d, decay * past[2] + float(n), int(t_ns)
 
 
@@ -192,8 +194,7 @@ class DriftRule:
         (faded by the time since), for the bus's next filter (its innovations go: see restart)."""
         past = rec.past
         if self.past_window_s > 0 and not rec.flagged and rec.current is not None:
-            decay = 1.0 if past is None else math.exp(-s_from_ns(max(0, rec.last_t - past[3])) / self.past_window_s)
-            past = _add_past(past, rec.current, rec.last_t, decay)
+            past = _add_past(past, rec.current, rec.last_t, self.past_window_s)
         return rec._replace(past=past).restart()
 
     def bias_cov(self, rec: RsuRecord) -> np.ndarray:
@@ -224,8 +225,7 @@ class DriftRule:
         current = (d, Cn, rec.n_eff)
         n = rec.n_eff
         if rec.past is not None and self.past_window_s > 0:
-            decay = math.exp(-s_from_ns(max(0, t_ns - rec.past[3])) / self.past_window_s)
-            I, Id, n, _ = _add_past(rec.past, current, t_ns, decay)
+            I, Id, n, _ = _add_past(rec.past, current, t_ns, self.past_window_s)
             try:
                 Cn = np.linalg.inv(I)
             except np.linalg.LinAlgError:
