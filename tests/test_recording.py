@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 
 from protocol import codec, keys
 from protocol.messages import Imu
-from protocol.transport import MessagePublisher, encoding_for
+from protocol.transport import MessagePublisher, encoding_for, qos_for
 from toptag.waiting import wait_until
 
 pytestmark = pytest.mark.integration
@@ -81,6 +81,17 @@ def _by_key(items):
     return out
 
 
+def _by_priority(items):
+    """The messages grouped by the Zenoh priority their type is published with (raw bytes: the default):
+    Zenoh keeps the order within a priority, not across them."""
+    out = {}
+    for key, payload in items:
+        raw = key == keys.rsu_status("rsu-zz")  # the stream's raw bytes, not a message
+        priority = qos_for(object if raw else type(codec.decode_any(payload))).priority
+        out.setdefault(str(priority), []).append((key, payload))
+    return out
+
+
 @pytest.fixture
 def recording(tmp_path, launch, free_port, zenoh_session):
     """A recording made by a `toptag record` process of the stream above; (path, what was sent)."""
@@ -129,7 +140,10 @@ def test_replay_gives_back_the_bytes_in_order_with_the_recorded_pacing(recording
     assert wait_until(lambda: len(col.got) >= len(sent), 5), (len(col.got), len(sent))
     got = [(k, p) for k, _, p, _ in col.got]
     assert _by_key(got) == _by_key(sent)  # byte-identical, same order on every key
-    assert got == sent  # and the same order overall (messages were sent >= 10 ms apart)
+    # And the same order overall within each priority. Across priorities Zenoh does not keep it: a replay
+    # running late on a starved machine publishes back to back, and an Imu (DATA_HIGH) overtook a status
+    # (DATA) sent just before it (fresh-clone CI with two busy loops, 2026-11-23).
+    assert _by_priority(got) == _by_priority(sent)
     assert "lateness against the recorded pacing" in rep.output()
 
     # Pacing, relative: the whole replay spans about what the recording spans, and the recorded pause
