@@ -15,6 +15,7 @@ from toptag.sources import (
     SourceEnded,
     SourceError,
     SourceSpec,
+    StreamClock,
     VideoSource,
     parse_source,
 )
@@ -107,3 +108,22 @@ def test_latest_frame_reader_keeps_the_newest_counts_drops_and_reopens():
         assert st.fps > 0
     finally:
         reader.close()
+
+
+def test_stream_clock_places_a_backlog_of_frames_by_their_own_timestamps():
+    clock = StreamClock(window_s=10.0)
+    ms = 1_000_000
+    # 10 fps; frames 0-1 arrive 40 ms after their time, then the reader is busy for 3 s and frames 2-5
+    # come out of its buffer a few ms apart
+    assert clock.stamp(0, 1_000 * ms + 40 * ms) == 1_040 * ms
+    assert clock.stamp(100 * ms, 1_140 * ms) == 1_140 * ms
+    late = [clock.stamp(k * 100 * ms, 4_000 * ms + k * ms) for k in range(2, 6)]
+    assert late == [1_040 * ms + k * 100 * ms for k in range(2, 6)]
+    # a frame faster than any before sets the delay for those after it
+    assert clock.stamp(600 * ms, 1_630 * ms) == 1_630 * ms
+    assert clock.stamp(700 * ms, 1_760 * ms) == 1_730 * ms
+    # the smallest delay is forgotten after the window (a camera clock drifting against the host's)
+    assert clock.stamp(700 * ms + 11_000 * ms, 12_760 * ms) == 12_760 * ms
+    # timestamps that do not increase: a restarted stream, or none (every frame then at its receive time)
+    assert clock.stamp(0, 20_000 * ms) == 20_000 * ms
+    assert clock.stamp(0, 20_100 * ms) == 20_100 * ms

@@ -151,6 +151,23 @@ def test_locate_reads_an_rtsp_stream(drive, rtsp):
     assert all(now - 120e9 < x["capture_time_ns"] < now for x in lines)  # receive time minus the latency
 
 
+def test_frames_read_late_from_a_stream_keep_the_stream_s_spacing(rtsp):
+    from toptag.sources import SourceSpec, VideoSource
+
+    source = VideoSource(SourceSpec("stream", rtsp.url), capture_latency_ns=50_000_000)
+    source.open()
+    try:
+        frames = [source.read()]
+        time.sleep(1.0)  # a busy reader: ten frames wait in the buffers
+        frames += [source.read() for _ in range(6)]
+    finally:
+        source.close()
+    gaps_ms = np.diff([f.capture_time_ns for f in frames]) / 1e6
+    assert np.allclose(gaps_ms[1:], 100.0, atol=1.0), gaps_ms  # 10 fps, whatever the reader's delays
+    assert gaps_ms[0] >= 99.0, gaps_ms
+    assert all(f.capture_time_ns <= f.receive_time_ns - 50_000_000 for f in frames)
+
+
 def test_rsu_serves_fixes_from_an_rtsp_stream_that_drops_and_comes_back(drive, rtsp, router, launch, zenoh_session):
     from protocol import keys
     from protocol.messages import Approach, PoseFix, RsuStatus, TagDetections

@@ -14,7 +14,9 @@ Capture time, per source (the time a PoseFix carries; SPEC: integer ns since the
               the RSU replays the file in real time from the moment it opens it)
     stream    receive time minus `capture_latency_ns`: OpenCV does not expose RTP/RTCP wall-clock
               times, so the camera-to-RSU latency (exposure, encoding, network, decoding) is measured
-              once at installation and configured (README: installing at a site)
+              once at installation and configured (README: installing at a site). The receive time is
+              that of the frame's place in the stream (`StreamClock`): a frame that waited in a buffer
+              while its reader was busy keeps the spacing of the stream's own timestamps
     device    receive time minus `capture_latency_ns` (the driver's buffering and readout)
     folder    the image file's modification time minus `capture_latency_ns` (the upload delay)
 
@@ -47,6 +49,33 @@ VIDEO_SUFFIXES = (".mp4", ".m4v", ".mkv", ".mov", ".avi", ".ts", ".m2ts", ".mts"
 OPEN_TIMEOUT_S = 10.0
 READ_TIMEOUT_S = 5.0
 LIVE_FFMPEG_OPTIONS = "analyzeduration;200000|probesize;65536|fflags;nobuffer"
+
+
+class StreamClock:
+    """The receive time a live stream's frame would have had with no wait in the reader's buffers: its
+    presentation timestamp plus the smallest receive-minus-timestamp delay seen over the last
+    `window_s` of the stream. Without it a reader that falls behind (a busy machine, a slow first
+    detection) stamps a backlog of frames 100 ms apart with receive times a few ms apart, and every
+    motion between them looks instantaneous. The window follows a camera clock that drifts against
+    the host's; a timestamp that does not increase (a restarted stream, or none at all) starts afresh,
+    so a stream without timestamps is stamped with its receive times."""
+
+    def __init__(self, window_s: float = 10.0):
+        self.window_ns = int(window_s * 1e9)
+        self._delays: deque[tuple[int, int]] = deque()  # (pts, receive - pts), delays increasing
+        self._last_pts: int | None = None
+
+    def stamp(self, pts_ns: int, received_ns: int) -> int:
+        if self._last_pts is not None and pts_ns <= self._last_pts:
+            self._delays.clear()
+        self._last_pts = pts_ns
+        delay = received_ns - pts_ns
+        while self._delays and self._delays[-1][1] >= delay:
+            self._delays.pop()
+        self._delays.append((pts_ns, delay))
+        while self._delays[0][0] < pts_ns - self.window_ns:
+            self._delays.popleft()
+        return pts_ns + self._delays[0][1]
 
 
 class SourceSettings(BaseModel):
@@ -206,6 +235,7 @@ class VideoSource:
                    "file": "not a video OpenCV's FFmpeg can decode"}[self.spec.kind]
             raise SourceError(f"source {redact(self.spec.target)}: {why}")
         self._cap = cap
+        self._clock = StreamClock()
         self.fps_declared = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         self.size = (w, h) if w > 0 and h > 0 else None
@@ -237,6 +267,10 @@ class VideoSource:
                 if wait > 0:
                     time.sleep(wait)
                 received = time.time_ns()
+        elif self.spec.kind == "stream":
+            pts_ms = float(self._cap.get(cv2.CAP_PROP_POS_MSEC))
+            placed = received if not np.isfinite(pts_ms) else self._clock.stamp(int(round(pts_ms * 1e6)), received)
+            capture = placed - self.capture_latency_ns
         else:
             capture = received - self.capture_latency_ns
         out = CapturedFrame(self._index, capture, received, _gray(frame))
