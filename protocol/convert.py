@@ -1,6 +1,7 @@
 """Between the core's vocabulary and the wire: the only place where a `toptag.fix.Fix` becomes a
 `PoseFix` message (and back), a `toptag.fusion.state.FusedState` becomes a `FusedPose` message, a
-`toptag.fusion.trust.RsuAssessment` an `RsuDiagnosis` and a `toptag.hostclock.HostClock` a `ClockInfo`.
+`toptag.fusion.trust.RsuAssessment` an `RsuDiagnosis`, a `toptag.hostclock.HostClock` a `ClockInfo`, and a
+bus's `CoarsePosition` the RSU's `toptag.rsu.whereabouts.ReportedPosition`.
 
 Field names differ on purpose: the wire names say what the receiver needs (``capture_time_ns``,
 ``rsu_id``, ``frame_seq``), the core names are the filter's (``t_ns``, ``source``, ``seq``)."""
@@ -8,12 +9,13 @@ from __future__ import annotations
 
 import math
 
-from protocol.messages import ClockInfo, FusedPose, FusionHealth, PoseFix, RsuDiagnosis
+from protocol.messages import ClockInfo, CoarsePosition, FusedPose, FusionHealth, PoseFix, RsuDiagnosis
 from toptag.fix import Fix
 from toptag.fusion.outcomes import FixOutcome, applied_count
 from toptag.fusion.state import FusedState, Health
 from toptag.fusion.trust import RsuAssessment
 from toptag.hostclock import HostClock
+from toptag.rsu.whereabouts import ReportedPosition
 from toptag.units import ns_from_s
 
 
@@ -47,6 +49,14 @@ def fix_from_message(m: PoseFix, arrival_ns: int | None = None) -> Fix:
                rms_px=m.reprojection_rms_px, ambiguous=m.ambiguous,
                clock_bound_ns=None if m.clock is None else m.clock.sync_uncertainty_ns,
                calib_cov=m.calibration_covariance)
+
+
+def reported_position(p: CoarsePosition) -> ReportedPosition:
+    """What an RSU makes of a bus's coarse position (its Approach's): a GNSS one gets the RSU's floor
+    on its sigma (toptag.rsu.whereabouts.GNSS_SIGMA_FLOOR_M)."""
+    return ReportedPosition(p.t_ns, p.x, p.y, p.sigma_m, None if p.vx is None else (p.vx, p.vy),
+                            p.velocity_sigma_mps or 0.0, p.speed_mps, p.yaw, p.yaw_sigma_rad or 0.0,
+                            gnss=p.source == "gnss")
 
 
 def _ns_or_none(seconds: float) -> int | None:

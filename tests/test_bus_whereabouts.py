@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from protocol.codec import decode, encode
+from protocol.convert import reported_position
 from protocol.messages import Approach, CoarsePosition, GnssFix
 from services.bus.agent import announced_position
 from services.rsu.bench import simulated_pass
 from toptag.fusion.filter import BusFilter
 from toptag.rsu.pipeline import RsuPipeline
-from toptag.rsu.whereabouts import MAX_ACCEL_MPS2, ReportedPosition
+from toptag.rsu.whereabouts import GNSS_SIGMA_FLOOR_M, MAX_ACCEL_MPS2, ReportedPosition
 
 S = 1_000_000_000
 pytestmark = pytest.mark.unit
@@ -178,3 +179,24 @@ def test_a_bus_entering_the_view_is_acquired_as_soon_as_without_its_whereabouts(
             first.setdefault("seen", i)
     assert "blind" in first and first["told"] <= first["blind"]
     assert first["seen"] >= 3 and searched["told"] < searched["blind"]
+
+
+def test_a_gnss_report_is_trusted_no_better_than_the_floor(bus_pass):
+    """A satellite fix 11 m off that claims 1 m (multipath near buildings): at its stated sigma it rules
+    out the part of the image where the bus is; with the RSU's floor on a GNSS sigma (3 x 4 m) the bus is
+    searched for there and found. A fused pose (an RSU-fixed filter's) keeps its own sigma."""
+    camera, bus, frames = bus_pass
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    t_ns, img, truth, _ = frames[shown[len(shown) // 2]]
+    off = np.asarray(truth[:2]) + 11.0 * np.array([-1.0, 1.0]) / np.sqrt(2)  # off toward the view's edge
+    found = {}
+    for source in ("fused", "gnss"):
+        c = CoarsePosition(t_ns=t_ns, x=float(off[0]), y=float(off[1]), sigma_m=1.0, source=source)
+        r = reported_position(c)
+        assert r.sigma_m == (GNSS_SIGMA_FLOOR_M if source == "gnss" else 1.0)
+        p = RsuPipeline(camera)
+        p.add_vehicle(bus)
+        p.report_position(bus.id, r)
+        found[source] = p.process(Decoder(img), t_ns).vehicles[bus.id].fix is not None
+    assert found == {"fused": False, "gnss": True}
+    assert reported_position(CoarsePosition(t_ns=1, x=0.0, y=0.0, sigma_m=9.0)).sigma_m == 9.0  # wider: kept

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from services.bus.agent import ANNOUNCE_PERIOD_S, IMU_GAP_RESET_S, announced_position
+from protocol.convert import reported_position
 from protocol.messages import GnssFix
 from services.monitor import frame_kind
 from sim.scenario import bundled_scenario_path, load_scenario
@@ -145,9 +146,7 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
                 c = announced_position(est, gnss.get(bus), wheel.get(bus), t)
                 if c is not None:
                     for p in pipelines:
-                        p.coarse_position(bus, c.t_ns, c.x, c.y, c.sigma_m,
-                                          None if c.vx is None else (c.vx, c.vy), c.velocity_sigma_mps or 0.0,
-                                          c.speed_mps, c.yaw, c.yaw_sigma_rad or 0.0)
+                        p.report_position(bus, reported_position(c))
         if not in_session:
             continue
         for bus in in_session:

@@ -26,7 +26,7 @@ import numpy as np
 
 from protocol import keys
 from protocol.codec import ProtocolError
-from protocol.convert import clock_to_message, fix_to_message
+from protocol.convert import clock_to_message, fix_to_message, reported_position
 from protocol.images import frame_to_gray
 from protocol.messages import Approach, DetectedTag, Frame, Leave, PoseFix, RsuDiagnosis, RsuStatus, TagDetections
 from protocol.transport import (
@@ -181,9 +181,7 @@ class RsuService:
     def _note_position(self, a: Approach) -> None:
         p = a.position
         if p is not None:
-            self.pipeline.coarse_position(a.bus_id, p.t_ns, p.x, p.y, p.sigma_m,
-                                          None if p.vx is None else (p.vx, p.vy), p.velocity_sigma_mps or 0.0,
-                                          p.speed_mps, p.yaw, p.yaw_sigma_rad or 0.0)
+            self.pipeline.report_position(a.bus_id, reported_position(p))
 
     def _end_session(self, bus: str, why: str) -> None:
         if self._sessions.pop(bus, None) is None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Literal
 
 import numpy as np
@@ -198,9 +198,13 @@ class RsuPipeline:
                         speed: float | None = None, yaw: float | None = None, yaw_sigma: float = 0.0) -> None:
         """The vehicle's own rough position (metres of error), with its velocity or speed, and heading,
         when it knows them: bounds where acquisition searches, or, when sure enough, where to crop."""
+        self.report_position(vehicle_id, ReportedPosition(t_ns, x, y, sigma_m, velocity, velocity_sigma, speed, yaw,
+                                                          yaw_sigma))
+
+    def report_position(self, vehicle_id: str, report: ReportedPosition) -> None:
+        """As coarse_position, the report whole (its roof height is the vehicle's)."""
         if vehicle_id in self.vehicles:
-            self._coarse[vehicle_id] = ReportedPosition(t_ns, x, y, sigma_m, velocity, velocity_sigma, speed, yaw,
-                                                        yaw_sigma, self.vehicles[vehicle_id].height)
+            self._coarse[vehicle_id] = replace(report, z=self.vehicles[vehicle_id].height)
 
     def _whereabouts_at(self, vid: str, t_ns: int) -> Whereabouts:
         """Where the unfound vehicle can be at t_ns: grown since the last frame, cut to its coarse

@@ -35,12 +35,18 @@ MAX_RANGE_M = 80.0  # no grid beyond this distance from the camera's nadir (tags
 # the lateral acceleration of its tightest turn at top speed, in any direction.
 MAX_ACCEL_MPS2 = float(np.hypot(BUS_MAX_DECEL_MPS2, BUS_MAX_SPEED_MPS * BUS_MAX_YAW_RATE))
 REPORT_Z_MARGIN_M = 0.3  # a report has no roof height: the vehicle's, give or take bounce and load
+# A GNSS position is never trusted below this sigma: near buildings and big vehicles multipath puts a
+# receiver metres off while it still states its open-sky sigma (1-2 m), and a disc at 3 sigma that misses
+# the bus would keep every RSU from searching where it is. 4 m (12 m at 3 sigma) covers the usual urban
+# error; a fused pose (its filter fixed by RSUs) keeps its own sigma.
+GNSS_SIGMA_FLOOR_M = 4.0
 
 
 @dataclass(frozen=True)
 class ReportedPosition:
     """A bus's own report of where it is (the coarse position of its Approach): at t_ns, (x, y) with
-    sigma_m, and, when it knows them, its velocity (with the sigma of each component) or its speed."""
+    sigma_m, and, when it knows them, its velocity (with the sigma of each component) or its speed.
+    gnss: the position is a satellite fix, whose sigma is raised to GNSS_SIGMA_FLOOR_M."""
 
     t_ns: int
     x: float
@@ -52,6 +58,11 @@ class ReportedPosition:
     yaw: float | None = None  # heading, with its sigma (a fused pose's)
     yaw_sigma: float = 0.0
     z: float = 0.0  # the roof's height (the vehicle's), for predict
+    gnss: bool = False
+
+    def __post_init__(self):
+        if self.gnss and not self.sigma_m >= GNSS_SIGMA_FLOOR_M:
+            object.__setattr__(self, "sigma_m", GNSS_SIGMA_FLOOR_M)
 
     def disc_at(self, t_ns: int, top_speed: float) -> tuple[float, float, float]:
         """(x, y, radius): where the bus's centre is at t_ns, surely. The position at 3 sigma, moved on
