@@ -304,6 +304,8 @@ class RsuStatus(Message):
     frames_received: Count = 0
     frames_processed: Count = 0
     frames_skipped: Count = Field(default=0, description="frames overwritten unprocessed because the RSU was busy")
+    frames_missing: Count = Field(default=0, description="frames that never reached the RSU: gaps in the camera's "
+                                                         "frame numbers (not sent, or lost; added in v1)")
     frames_idle: Count = Field(default=0, description="frames dropped undecoded because no bus was in session")
     frames_with_fix: Count = Field(default=0, description="frames that gave at least one PoseFix")
     fixes_published: Count = 0

@@ -3,7 +3,8 @@
 Prints and writes (--out, JSON) what says whether the demo keeps real time on this machine:
 - CPU seconds of every process over the working window (from the simulator's first frame to the
   stop) and their total in cores;
-- per RSU: frames that reached it and those it skipped because it was busy (count and fraction), and
+- per RSU: frames that reached it and those it skipped because it was busy (count and fraction), those
+  that never reached it (ticks the simulator skipped for running late: gaps in the frame numbers), and
   where its time went: frames and mean processing ms per kind of work (acquisition, tracking, nothing);
 - fix latency (capture to arrival at the monitor) p50 / p99 over every bus's fixes;
 - the fraction of fused samples with status "ok" while a bus is in session (its Approach to its Leave).
@@ -33,10 +34,14 @@ def figures(report: dict) -> dict:
     """The bench's figures from a `toptag demo --report` summary."""
     rsus = {}
     for rid, r in report.get("rsus", {}).items():
-        # frames: taken by the RSU's loop; skipped: overwritten unseen while it was busy (their sum: sent).
+        # frames: taken by the RSU's loop; skipped: overwritten unseen while it was busy (their sum: the
+        # frames that reached it); missing: never reached it (the simulator skipped the tick, running late).
         offered = r["frames"] + r["frames_skipped_busy"]
+        missing = r.get("frames_missing", 0)
         rsus[rid] = {"frames": offered, "skipped_busy": r["frames_skipped_busy"],
                      "skipped_busy_fraction": round(r["frames_skipped_busy"] / offered, 4) if offered else None,
+                     "missing": missing,
+                     "missing_fraction": round(missing / (offered + missing), 4) if offered + missing else None,
                      "idle": r["frames_idle"], "processed": r["frames_processed"],
                      "detect_ms_mean": r["detect_ms_mean"],
                      "processing_ms_by_kind": r.get("processing_ms_by_kind", {})}
@@ -70,7 +75,9 @@ def table(f: dict) -> str:
     for rid, r in f["rsus"].items():
         frac = r["skipped_busy_fraction"]
         lines.append(f"  {rid:14s} frames {r['frames']:5d} skipped busy {r['skipped_busy']:4d} "
-                     f"({_fmt(None if frac is None else 100 * frac)} %) idle {r['idle']:5d}; "
+                     f"({_fmt(None if frac is None else 100 * frac)} %) missing {r['missing']:4d} "
+                     f"({_fmt(None if r['missing_fraction'] is None else 100 * r['missing_fraction'])} %) "
+                     f"idle {r['idle']:5d}; "
                      + ", ".join(f"{k} {v['frames']} x {v['mean_ms']:.1f} ms"
                                  for k, v in r["processing_ms_by_kind"].items()))
     lat = f["fix_latency_ms"]

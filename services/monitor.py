@@ -258,6 +258,7 @@ class Monitor:
             self._score()
             rsus = {rid: {"frames": s.frames_received, "frames_processed": s.frames_processed,
                           "frames_idle": s.frames_idle, "frames_skipped_busy": s.frames_skipped,
+                          "frames_missing": s.frames_missing,
                           "frames_detected": s.frames_with_fix, "fixes_published": s.fixes_published,
                           "seconds_active": round(s.active_s, 1), "active_buses": s.active_buses,
                           "detect_ms_mean": (self.detect_ms[rid][0] / self.detect_ms[rid][1]

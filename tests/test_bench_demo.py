@@ -44,7 +44,7 @@ def test_bench_demo_prints_and_writes_every_figure(tmp_path):
 
 
 def test_figures_from_a_demo_report():
-    report = {"rsus": {"rsu-sw": {"frames": 90, "frames_skipped_busy": 10, "frames_idle": 30,
+    report = {"rsus": {"rsu-sw": {"frames": 90, "frames_skipped_busy": 10, "frames_missing": 25, "frames_idle": 30,
                                   "frames_processed": 60, "detect_ms_mean": 4.0}},
               "buses": {"bus-42": {"fixes_received": 50, "latency_ms_p50": 40.0, "latency_ms_p99": 90.0,
                                    "fused_in_session_samples": 200, "fused_in_session_ok_fraction": 0.9}},
@@ -54,7 +54,8 @@ def test_figures_from_a_demo_report():
               "exit_codes": {"sim": 0}}
     f = figures(report)
     assert f["rsus"]["rsu-sw"]["frames"] == 100 and f["rsus"]["rsu-sw"]["skipped_busy_fraction"] == 0.1
+    assert f["rsus"]["rsu-sw"]["missing"] == 25 and f["rsus"]["rsu-sw"]["missing_fraction"] == 0.2
     assert f["fix_latency_ms"] == {"p50": 40.0, "p99": 90.0, "fixes": 50}
     assert f["fused_ok_in_session"] == {"fraction": 0.9, "samples": 200}
     text = table(f)
-    assert "10.0 %" in text and "0.50 cores" in text and "90.0 %" in text
+    assert "10.0 %" in text and "missing   25 (20.0 %)" in text and "0.50 cores" in text and "90.0 %" in text

@@ -8,13 +8,15 @@ import time
 from collections import defaultdict
 
 ACCEPTED, REJECTED, HANDLER_ERROR, IGNORED, SKIPPED = "accepted", "rejected", "handler_error", "ignored", "skipped"
+MISSING = "missing"
 
 
 class MessageCounters:
     """Thread-safe counts of (event, message type, subscription key) plus rejection reasons.
 
     Events: accepted, rejected (bad payload), handler_error, ignored (DELETE samples), skipped (frames
-    overwritten in a latest-only receiver, from sequence gaps)."""
+    overwritten unseen in a latest-only receiver: the reader was busy), missing (gaps in a latest-only
+    receiver's sequence that it never received: the sender skipped them, or they were lost)."""
 
     def __init__(self):
         self._lock = threading.Lock()

@@ -4,8 +4,13 @@ is counted and logged (rate-limited), never fatal.
 Facts this module relies on (eclipse-zenoh 1.10):
 - A subscriber on zenoh.handlers.RingChannel(1) keeps only the newest sample; skipped samples never
   reach Python, so an RSU that falls behind does not even copy the frames it skips. A callback
-  subscriber, in contrast, queues without bound on the Python side (100 x 1 MiB frames were all
-  buffered behind a 20 ms handler): use latest_only for frames.
+  subscriber whose callback does the work, in contrast, queues without bound on the Python side (100 x
+  1 MiB frames were all buffered behind a 20 ms handler): use latest_only for frames.
+- A pull receiver (latest_only, no handler) keeps the newest sample in a slot from a callback that only
+  swaps it (nothing is decoded or copied there) and wakes the reader: a RingChannel has no recv with a
+  timeout, and polling try_recv every millisecond cost an idle RSU ~1.4 % of a core and up to a
+  millisecond of latency per frame. The slot also tells frames overwritten while the reader was busy
+  (skipped) from gaps in the sender's sequence that never arrived (missing).
 - A Subscriber whose handler.recv() is blocked in another thread cannot be undeclared
   ("Already borrowed"): block on ``sub.handler`` (a separate object), never on ``sub``.
 """
@@ -22,7 +27,16 @@ import zenoh
 from protocol import codec
 from protocol.codec import ProtocolError
 from protocol.messages import Frame, Message
-from protocol.transport.counters import ACCEPTED, HANDLER_ERROR, IGNORED, REJECTED, SKIPPED, LogLimiter, MessageCounters
+from protocol.transport.counters import (
+    ACCEPTED,
+    HANDLER_ERROR,
+    IGNORED,
+    MISSING,
+    REJECTED,
+    SKIPPED,
+    LogLimiter,
+    MessageCounters,
+)
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +52,8 @@ class SafeSubscriber(Generic[M]):
     - handler, latest_only=False: handler(msg) runs for every sample on a zenoh callback thread.
     - handler, latest_only=True: samples go to a RingChannel(1); a worker thread runs handler(msg) on
       the newest one whenever it is free (older ones are overwritten, never decoded).
-    - handler=None: a pull receiver; call recv(timeout) / try_recv() (RingChannel(1) if latest_only,
-      else a FIFO of ``capacity``).
+    - handler=None: a pull receiver; call recv(timeout) / try_recv() (latest_only: a slot holding the
+      newest sample, see the module doc; else a FIFO of ``capacity``).
     """
 
     def __init__(self, session: zenoh.Session, key: str, msg_type: type[M],
@@ -59,8 +73,14 @@ class SafeSubscriber(Generic[M]):
         self._worker: threading.Thread | None = None
         name = msg_type.__name__
         self._name = name
+        self._slot: zenoh.Sample | None = None  # latest-only pull: the newest sample, not yet taken
+        self._overwritten = 0  # samples the slot lost since the last one taken
+        self.arrived = 0  # latest-only pull: samples that reached the slot
+        self._arrived = threading.Condition()
         if handler is not None and not latest_only:
             self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._on_sample))
+        elif handler is None and latest_only:
+            self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._keep_newest))
         else:
             channel = zenoh.handlers.RingChannel(1) if latest_only else zenoh.handlers.FifoChannel(capacity)
             self._sub = session.declare_subscriber(self.key, channel)
@@ -70,8 +90,27 @@ class SafeSubscriber(Generic[M]):
                                                 daemon=True)
                 self._worker.start()
 
+    def _keep_newest(self, sample: zenoh.Sample) -> None:
+        with self._arrived:
+            if self._slot is not None:
+                self._overwritten += 1
+                self.counters.inc(SKIPPED, self._name, self.key)
+            self._slot = sample
+            self.arrived += 1
+            self._arrived.notify()
+
+    def _take(self, timeout: float | None) -> tuple[zenoh.Sample | None, int]:
+        """The newest sample (waiting up to ``timeout``; None: until one comes or the receiver closes) and
+        how many the slot lost before it."""
+        with self._arrived:
+            if self._slot is None and not self._closed.is_set():
+                self._arrived.wait_for(lambda: self._slot is not None or self._closed.is_set(), timeout)
+            sample, lost = self._slot, self._overwritten
+            self._slot, self._overwritten = None, 0
+            return sample, lost
+
     # -- decoding and accounting
-    def _decode(self, sample: zenoh.Sample) -> M | None:
+    def _decode(self, sample: zenoh.Sample, overwritten: int = 0) -> M | None:
         if sample.kind == zenoh.SampleKind.DELETE:
             self.counters.inc(IGNORED, self._name, self.key)
             return None
@@ -93,8 +132,10 @@ class SafeSubscriber(Generic[M]):
             seq = getattr(msg, "seq", None)
             if isinstance(seq, int):
                 last = self._last_seq.get(skey)
-                if last is not None and seq > last + 1:
-                    self.counters.inc(SKIPPED, self._name, self.key, seq - last - 1)
+                if last is not None and seq > last + 1 + overwritten:
+                    # a ring (handler mode) hides its overwrites: its gaps count as skipped
+                    self.counters.inc(MISSING if self.handler is None else SKIPPED, self._name, self.key,
+                                      seq - last - 1 - overwritten)
                 self._last_seq[skey] = seq
         return msg
 
@@ -128,6 +169,9 @@ class SafeSubscriber(Generic[M]):
         """The next (latest_only: the newest) valid message if one is waiting, else None."""
         if self.handler is not None:
             raise RuntimeError("this subscriber delivers to its handler; recv() is for handler=None")
+        if self.latest_only:
+            sample, lost = self._take(0)
+            return None if sample is None else self._decode(sample, lost)
         while True:
             try:
                 sample = self._channel.try_recv()
@@ -144,6 +188,18 @@ class SafeSubscriber(Generic[M]):
         counted and skipped."""
         if self.handler is not None:
             raise RuntimeError("this subscriber delivers to its handler; recv() is for handler=None")
+        if self.latest_only:
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while not self._closed.is_set():
+                left = None if deadline is None else max(0.0, deadline - time.monotonic())
+                sample, lost = self._take(left)
+                if sample is not None:
+                    msg = self._decode(sample, lost)
+                    if msg is not None:
+                        return msg
+                elif deadline is not None and time.monotonic() >= deadline:
+                    return None
+            return None
         if timeout is None:
             while not self._closed.is_set():
                 try:
@@ -169,6 +225,8 @@ class SafeSubscriber(Generic[M]):
         if self._closed.is_set():
             return
         self._closed.set()
+        with self._arrived:
+            self._arrived.notify_all()
         try:
             self._sub.undeclare()
         except Exception:

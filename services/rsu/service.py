@@ -30,7 +30,9 @@ from protocol.convert import clock_to_message, fix_to_message, reported_position
 from protocol.images import frame_to_gray
 from protocol.messages import Approach, DetectedTag, Frame, Leave, PoseFix, RsuDiagnosis, RsuStatus, TagDetections
 from protocol.transport import (
+    MISSING,
     REJECTED,
+    SKIPPED,
     MessageCounters,
     MessagePublisher,
     latest_receiver,
@@ -273,7 +275,8 @@ class RsuService:
     def status(self) -> RsuStatus:
         c = self.counters
         det = c.detect_ns
-        fields = {"frames_skipped": self.msg_counters.get("skipped", "Frame"), **self._source_status()}
+        fields = {"frames_skipped": self.msg_counters.get(SKIPPED, "Frame"),
+                  "frames_missing": self.msg_counters.get(MISSING, "Frame"), **self._source_status()}
         msg = RsuStatus(rsu_id=self.rsu_id, intersection_id=self.intersection, reference_time_ns=time.time_ns(),
                         started_ns=self.started_ns, active_buses=sorted(self._sessions),
                         frames_received=c.frames_received, frames_processed=c.frames_processed, frames_idle=c.frames_idle,
@@ -298,7 +301,7 @@ class RsuService:
         return {"source": self.source.source.spec.describe()[:300], "source_connected": st.connected,
                 "source_fps": round(st.fps, 3), "source_reconnects": st.reconnects,
                 "source_last_error": None if st.last_error is None else st.last_error[:500],
-                "frames_skipped": self.msg_counters.get("skipped", "Frame") + st.frames_dropped}
+                "frames_skipped": self.msg_counters.get(SKIPPED, "Frame") + st.frames_dropped}
 
     # ---- loop ---------------------------------------------------------------------------------
     def run(self, duration: float | None = None, status_period: float = 1.0) -> None:
