@@ -292,12 +292,15 @@ class CameraRaster:
         independent samples drawn once per camera and sigma (H·W + NOISE_BANK_EXTRA of them). Within a
         frame it is i.i.d. as before; two frames share a pixel's sample only if their offsets are equal
         (one time in a million)."""
+        return self.noise_window(sigma, int(rng.integers(0, NOISE_BANK_EXTRA + 1)))
+
+    def noise_window(self, sigma: float, offset: int) -> np.ndarray:
+        """The field of noise() at a given offset into the bank (0 <= offset <= NOISE_BANK_EXTRA)."""
         n = self.height * self.width
         if self._noise_sigma != sigma:
             draw = np.random.default_rng(NOISE_BANK_SEED).standard_normal(n + NOISE_BANK_EXTRA, dtype=np.float32)
             self._noise_bank = np.rint(draw * np.float32(sigma)).astype(np.int16)
             self._noise_sigma = sigma
-        offset = int(rng.integers(0, NOISE_BANK_EXTRA + 1))
         return self._noise_bank[offset:offset + n].reshape(self.height, self.width)
 
     def finished_background(self, model) -> np.ndarray:

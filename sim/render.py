@@ -15,7 +15,9 @@ Only the image region that vehicles touch is recomputed per frame.
 """
 from __future__ import annotations
 
+import re
 import threading
+import weakref
 from dataclasses import dataclass, field
 
 import cv2
@@ -23,7 +25,7 @@ import numpy as np
 
 from sim.image_model import ImageModel
 from sim.patterns import grid_size, tag_cells
-from sim.raster import CameraRaster, optics_reach, raster_for
+from sim.raster import NOISE_BANK_EXTRA, CameraRaster, optics_reach, raster_for
 from toptag.camera import Camera
 from toptag.geometry import rot_z, vehicle_to_world
 from toptag.vehicle import Vehicle
@@ -594,6 +596,13 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
     (Occluder or PlacedVehicle) under `model` (default ImageModel()). `rng` seeds the sensor noise."""
     model = ImageModel() if model is None else model
     rng = np.random.default_rng() if rng is None else rng
+    rast, out, _rows = _developed(camera, vehicles, occluders, model, rng)
+    return sensor_and_stream(rast, out, model, rng)
+
+
+def _developed(camera: Camera, vehicles, occluders, model: ImageModel, rng: np.random.Generator):
+    """(raster, the frame through the optics before sensor noise, rows (y0, y1) that differ from the
+    static background or None)."""
     rast = raster_for(camera)
     out = rast.finished_background(model).copy()
     items = [_as_box(o) for o in list(vehicles) + list(occluders)]
@@ -602,9 +611,8 @@ def render(camera: Camera, vehicles=(), occluders=(), model: ImageModel | None =
         layer = _render_layer(rast, items[i][0], items[i][1], model, rng)
         if layer is not None:
             layers.append(layer)
-    if layers:
-        _composite(rast, layers, model, out)
-    return sensor_and_stream(rast, out, model, rng)
+    rows = _composite(rast, layers, model, out) if layers else None
+    return rast, out, rows
 
 
 def sensor_and_stream(rast: CameraRaster, out: np.ndarray, model: ImageModel, rng: np.random.Generator) -> np.ndarray:
@@ -655,8 +663,8 @@ def video_roundtrip(image: np.ndarray, codec: str, qp: int) -> np.ndarray:
     return out
 
 
-def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
-    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+def encode_jpeg(image: np.ndarray, quality: int, params: list[int] | None = None) -> bytes:
+    ok, buf = cv2.imencode(".jpg", image, params or [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise RuntimeError("JPEG encoding failed")
     return buf.tobytes()
@@ -667,11 +675,102 @@ def render_jpeg(camera: Camera, vehicles=(), occluders=(), model: ImageModel | N
     """The frame as the RSU's camera stream delivers it: JPEG bytes at the model's quality (90 when the
     model has JPEG off), compressed once."""
     model = ImageModel() if model is None else model
+    if model.codec == "jpeg":
+        rng = np.random.default_rng() if rng is None else rng
+        rast, out, rows = _developed(camera, vehicles, occluders, model, rng)
+        return _strips_for(rast, model).jpeg(out, rows, rng)
     raw = render(camera, vehicles, occluders, model.model_copy(update={"jpeg_quality": 0}), rng)
     return encode_jpeg(raw, model.jpeg_quality or 90)
 
 
-def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out: np.ndarray) -> None:
+# ---- JPEG of a frame whose background is static -------------------------------------------------
+STRIP_NOISE_CHOICES = 16  # noise fields per 8-row strip of the static background (see _JpegStrips)
+_RST = re.compile(rb"\xff[\xd0-\xd7]")
+
+
+class _JpegStrips:
+    """JPEG bytes of a camera's frames in which only the rows that vehicles touch are encoded afresh.
+
+    The frame is coded with a restart marker after every 8-row strip (one row of 8x8 blocks of the gray
+    image), which makes each strip's entropy-coded data independent of the others' (the DC prediction
+    restarts); every strip is coded with the same standard tables at the same quality. The sensor noise of
+    strip m is rows 8m.. of one of STRIP_NOISE_CHOICES fixed fields of the camera's noise bank, drawn per
+    strip and frame, so that a static strip's code is one of STRIP_NOISE_CHOICES cached ones and only the
+    strips that vehicles touch are noised and encoded. Decoded, the bytes are exactly the pixels a plain
+    encoding of the same noised frame gives (tests/test_render_noise.py). The noise is i.i.d. within a
+    frame as before; over time a static strip's noise repeats one frame in STRIP_NOISE_CHOICES."""
+
+    def __init__(self, rast: CameraRaster, model: ImageModel):
+        self.rast, self.quality, self.sigma = rast, int(model.jpeg_quality or 90), float(model.noise_sigma)
+        self.background = rast.finished_background(model)
+        h, w = self.background.shape
+        self.n_strips = (h + 7) // 8
+        self.params = [cv2.IMWRITE_JPEG_QUALITY, self.quality, cv2.IMWRITE_JPEG_RST_INTERVAL, (w + 7) // 8]
+        self.choices = STRIP_NOISE_CHOICES if self.sigma > 0 else 1
+        stride = NOISE_BANK_EXTRA // self.choices
+        self.noise = [rast.noise_window(self.sigma, k * stride) if self.sigma > 0 else None
+                      for k in range(self.choices)]
+        self.header = b""
+        self.cached: list[list[bytes]] = []  # [noise choice][strip]
+        for k in range(self.choices):
+            header, segments = self._encode(self._noised(self.background, 0, h, [k] * self.n_strips))
+            self.header = header
+            self.cached.append(segments)
+
+    def _noised(self, img: np.ndarray, y0: int, y1: int, choice) -> np.ndarray:
+        """Rows y0:y1 (whole strips, or to the bottom) of img with each strip's noise field."""
+        rows = img[y0:y1]
+        if self.sigma <= 0:
+            return rows
+        noise = np.empty(rows.shape, np.int16)
+        for m in range(y0 // 8, (y1 + 7) // 8):
+            a, b = 8 * m, min(8 * m + 8, y1)
+            noise[a - y0:b - y0] = self.noise[choice[m]][a:b]
+        return cv2.add(rows, noise, dtype=cv2.CV_8U)
+
+    def _encode(self, img: np.ndarray) -> tuple[bytes, list[bytes]]:
+        """(everything up to the scan data, the entropy-coded data of each strip)."""
+        data = encode_jpeg(img, self.quality, self.params)
+        sos = data.index(b"\xff\xda")
+        start = sos + 2 + int.from_bytes(data[sos + 2:sos + 4], "big")
+        assert data.endswith(b"\xff\xd9")
+        return data[:start], _RST.split(data[start:-2])
+
+    def jpeg(self, out: np.ndarray, rows: tuple[int, int] | None, rng: np.random.Generator) -> bytes:
+        choice = rng.integers(0, self.choices, self.n_strips) if self.choices > 1 else np.zeros(self.n_strips, int)
+        segments = [self.cached[k][m] for m, k in enumerate(choice)]
+        if rows is not None:
+            m0, m1 = rows[0] // 8, (rows[1] + 7) // 8
+            y1 = min(8 * m1, out.shape[0])
+            _, fresh = self._encode(self._noised(out, 8 * m0, y1, choice))
+            segments[m0:m1] = fresh
+        parts = [self.header]
+        for m, seg in enumerate(segments):
+            if m:
+                parts.append(bytes((0xFF, 0xD0 + (m - 1) % 8)))
+            parts.append(seg)
+        parts.append(b"\xff\xd9")
+        return b"".join(parts)
+
+
+_STRIPS: "weakref.WeakKeyDictionary[CameraRaster, dict[tuple, _JpegStrips]]" = weakref.WeakKeyDictionary()
+_STRIPS_LOCK = threading.Lock()
+
+
+def _strips_for(rast: CameraRaster, model: ImageModel) -> _JpegStrips:
+    key = (float(model.blur_sigma), float(model.gamma), float(model.defocus_px), float(model.gain),
+           float(model.vignetting), float(model.noise_sigma), int(model.jpeg_quality or 90))
+    with _STRIPS_LOCK:
+        per_model = _STRIPS.setdefault(rast, {})
+        if key not in per_model:
+            if len(per_model) >= 2:
+                per_model.pop(next(iter(per_model)))
+            per_model[key] = _JpegStrips(rast, model)
+        return per_model[key]
+
+
+def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out: np.ndarray) -> tuple[int, int]:
+    """Paints the layers over out (the developed background); the rows it changed."""
     x0 = min(l.x0 for l in layers)
     y0 = min(l.y0 for l in layers)
     x1 = max(l.x0 + l.alpha.shape[1] for l in layers)
@@ -689,3 +788,4 @@ def _composite(rast: CameraRaster, layers: list[_Layer], model: ImageModel, out:
         F[sl] = F[sl] * (1.0 - l.alpha) + l.premult
     img = rast.develop(F, model, cx0, cy0)
     out[py0:py1, px0:px1] = img[py0 - cy0:py1 - cy0, px0 - cx0:px1 - cx0]
+    return py0, py1

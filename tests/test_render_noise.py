@@ -33,3 +33,38 @@ def test_noise_field_has_the_model_statistics_within_and_across_frames():
     # seeded: the same rng seed renders the same frame
     again = render(cam, model=model, rng=np.random.default_rng(3)).astype(float) - clean
     assert np.array_equal(again, a)
+
+
+def test_a_live_jpeg_re_encodes_only_the_strips_vehicles_touch_and_decodes_to_the_plain_encoding():
+    """render_jpeg (the live simulator's frames) splices cached 8-row strips of the static background
+    with freshly encoded strips where vehicles are: decoded, exactly the pixels of a plain JPEG of the
+    same noised frame, which is an ordinary baseline JPEG (what the RSU decodes)."""
+    import cv2
+
+    from sim.render import PlacedVehicle, _developed, _strips_for, encode_jpeg, render_jpeg
+    from sim.scene import bundled_vehicle
+
+    cam = rsu_camera("sw", 960, 720)
+    model = ImageModel(noise_sigma=7.0, codec="jpeg", jpeg_quality=90)
+    bus = PlacedVehicle(bundled_vehicle("bus_double"), -2.0, 6.0, 0.7, speed=6.0)
+    for vehicles in ([bus], []):
+        rast, out, rows = _developed(cam, vehicles, (), model, np.random.default_rng(1))
+        strips = _strips_for(rast, model)
+        data = strips.jpeg(out, rows, np.random.default_rng(5))
+        choice = np.random.default_rng(5).integers(0, strips.choices, strips.n_strips)
+        plain = strips._noised(out, 0, out.shape[0], choice)
+        got = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        want = cv2.imdecode(np.frombuffer(encode_jpeg(plain, 90), np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert got is not None and np.array_equal(got, want)
+        if vehicles:
+            assert rows is not None and 0 < rows[1] - rows[0] < out.shape[0] // 2  # a part re-encoded
+            assert not np.array_equal(plain, strips._noised(strips.background, 0, out.shape[0], choice))
+        else:
+            assert rows is None
+    # Frame after frame, a static strip's noise is one of the cached fields: it repeats now and then.
+    rng = np.random.default_rng(7)
+    a, b = (cv2.imdecode(np.frombuffer(render_jpeg(cam, [], (), model, rng), np.uint8), cv2.IMREAD_GRAYSCALE)
+            for _ in range(2))
+    same = [np.array_equal(a[8 * m:8 * m + 8], b[8 * m:8 * m + 8]) for m in range(90)]
+    assert 0 < sum(same) < 20  # ~90 / 16
+    assert np.std(a.astype(float) - b.astype(float)) > 7  # otherwise fresh noise
