@@ -322,6 +322,39 @@ def _subsample_rays(rast: CameraRaster, ys: np.ndarray, xs: np.ndarray, offsets:
     return lattice(X), lattice(Y)
 
 
+# Pixels whose centre lies within this distance of a projected edge are supersampled: the samples' half
+# diagonal (0.71 px) plus a margin above the edges' rasterisation (fillPoly at 1/16 px) and the chords'
+# error (edges are subdivided so that lens distortion bends them: sim.raster.project_polygon).
+EDGE_REACH_PX = 1.5
+_PIECE_PX = 8.0  # edges are cut into pieces this long, each tested against the pixels of its box
+
+
+def _near_edges(outlines: list[np.ndarray], x0: int, y0: int, h: int, w: int, reach: float) -> np.ndarray:
+    """(h, w) bool: the crop's pixels whose centre is within `reach` of an edge of any closed pixel
+    outline (M, 2)."""
+    a = np.vstack(outlines) - [x0, y0]
+    b = np.vstack([np.roll(o, -1, axis=0) for o in outlines]) - [x0, y0]
+    d = b - a
+    m = np.maximum(1, np.ceil(np.hypot(d[:, 0], d[:, 1]) / _PIECE_PX)).astype(int)
+    edge = np.repeat(np.arange(len(a)), m)
+    k = np.arange(len(edge)) - np.repeat(np.cumsum(m) - m, m)
+    p = a[edge] + (k / m[edge])[:, None] * d[edge]
+    q = a[edge] + ((k + 1) / m[edge])[:, None] * d[edge]
+    lo = np.floor(np.minimum(p, q) - reach).astype(int)
+    span = int(np.ceil(_PIECE_PX + 2 * reach)) + 2
+    gx = lo[:, 0, None, None] + np.arange(span)[None, None, :]
+    gy = lo[:, 1, None, None] + np.arange(span)[None, :, None]
+    pq = q - p
+    L2 = np.maximum((pq ** 2).sum(axis=1), 1e-12)[:, None, None]
+    ux, uy = gx - p[:, 0, None, None], gy - p[:, 1, None, None]
+    t = np.clip((ux * pq[:, 0, None, None] + uy * pq[:, 1, None, None]) / L2, 0.0, 1.0)
+    ex, ey = ux - t * pq[:, 0, None, None], uy - t * pq[:, 1, None, None]
+    near = (ex * ex + ey * ey <= reach * reach) & (gx >= 0) & (gx < w) & (gy >= 0) & (gy < h)
+    mask = np.zeros((h, w), bool)
+    mask[np.broadcast_to(gy, near.shape)[near], np.broadcast_to(gx, near.shape)[near]] = True
+    return mask
+
+
 # ---- one layer ----------------------------------------------------------------------------------
 @dataclass
 class _Layer:
@@ -459,6 +492,10 @@ def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model
     diff[1:, :] |= dv
     diff[:-1, :] |= dv
     band = cv2.dilate(diff, np.ones((3, 3), np.uint8))[ap:ap + h, ap:ap + w].astype(bool)
+    # Of those, only the pixels an edge can really cross: every sample of a pixel lies within its
+    # half-diagonal of its centre, so a pixel farther than that (plus the labels' rounding) from every
+    # projected edge sees one face alone, and its centre's label and colour are what its samples give.
+    band &= _near_edges([px for _, px in polys], x0, y0, h, w, EDGE_REACH_PX)
 
     tag_edge = []  # per tag: mask of its cell-edge pixels in the crop
     for tg in tags:
