@@ -114,8 +114,9 @@ def _run(args: argparse.Namespace, scenario_path: Path, scenario, stop: threadin
 
     session = open_session(mode="client", connect=[endpoint])
     monitor = Monitor(session)
+    rsu_settings = ["--config", str(scenario.rsu_config)] if scenario.rsu_config else []
     rsus = [group.start(cam.stem, TOPTAG + ["rsu", "--camera", str(cam), "--intersection", scenario.intersection_id]
-                        + client) for cam in scenario.camera_paths()]
+                        + rsu_settings + client) for cam in scenario.camera_paths()]
     bus_config = args.bus_config or scenario.bus_config
     bus_settings = ["--config", str(bus_config)] if bus_config else []
     buses = [group.start(f"bus-{veh.stem}", TOPTAG + ["bus", "--vehicle", str(veh), "--map", str(scenario.map_path())]

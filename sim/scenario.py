@@ -33,6 +33,8 @@ surveyed camera file.
 
 `bus_config`: a bus settings file (services.bus.agent.BusSettings, TOML) that `toptag demo` passes to
 the scenario's buses (`toptag bus --config`), e.g. the drift detector's thresholds for the live pipeline.
+`rsu_config`: likewise an RSU settings file for its RSUs (`toptag rsu --config`), e.g. the corner-noise
+model of the simulator's images ([pipeline] turn_ratio; `toptag eval livefix` reads it too).
 
 Errors: `load_scenario` raises toptag.inputs.InputError with one line naming the file and the field.
 """
@@ -157,6 +159,8 @@ class Scenario(BaseModel):
     faults: dict[str, RsuFault] = Field(default_factory=dict, description="per RSU id: injected faults")
     bus_config: str | None = Field(default=None, description="bus settings file (toptag bus --config) that "
                                                              "`toptag demo` gives the scenario's buses")
+    rsu_config: str | None = Field(default=None, description="RSU settings file (toptag rsu --config) that "
+                                                             "`toptag demo` gives the scenario's RSUs")
 
     @field_validator("rsus", mode="before")
     @classmethod
@@ -217,6 +221,7 @@ def load_scenario(path: str | Path) -> Scenario:
         "rsus": [r.model_copy(update={"camera": resolve(r.camera)}) for r in sc.rsus],
         "buses": [b.model_copy(update={"vehicle": resolve(b.vehicle)}) for b in sc.buses],
         "bus_config": None if sc.bus_config is None else resolve(sc.bus_config),
+        "rsu_config": None if sc.rsu_config is None else resolve(sc.rsu_config),
     })
 
 

@@ -37,6 +37,7 @@ from toptag.rsu.tracking import SPEED_MARGIN, TrackSettings, VehicleTrack
 from toptag.rsu.whereabouts import ReportedPosition, ViewGrid, Whereabouts, tile_boxes
 from toptag.solvers import PoseSolution, canonical_method, solve
 from toptag.solvers.calibrated import with_calibration
+from toptag.solvers.level import TURN_RATIO
 from toptag.units import s_from_ns
 from toptag.vehicle import Vehicle
 
@@ -48,6 +49,11 @@ class PipelineSettings(BaseModel):
 
     method: str = "level"  # toptag.solvers: bas | hopt | sopt | level (level roof, edge-noise weighting)
     weighting: Literal["paper", "principled"] = "principled"
+    # The level solver's corner-noise model for this camera's images: sigma of a tag edge's turn over its
+    # offset's (toptag.solvers.level). Default: real photographs' (TURN_RATIO, docs/real-data.md). Yaw
+    # rests on the turns: a camera whose edges turn more than this gets yaw covariances too small (the
+    # simulator's renderer measures 2: `toptag eval livefix --turn-ratio`, docs/time-and-trust.md).
+    turn_ratio: float = Field(default=TURN_RATIO, gt=0)
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     tracking: bool = True
     # Acquisition: "pyramid" searches each row band at the coarsest level that still resolves a tag at
@@ -335,7 +341,8 @@ class RsuPipeline:
     def _conclude(self, vid: str, obs: list, mode: str, t_ns: int, seq: int | None, regions: int) -> VehicleResult:
         """Solve one vehicle from its observations in this frame and update its track."""
         vehicle = self.vehicles[vid]
-        sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting) if obs else None
+        sol = solve(vehicle, obs, method=self.settings.method, weighting=self.settings.weighting,
+                    turn_ratio=self.settings.turn_ratio) if obs else None
         fix = None
         if sol is not None and sol.ok:
             calib = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
