@@ -11,7 +11,7 @@ pytestmark = pytest.mark.unit
 
 
 def test_the_live_pipelines_fixes_carry_no_weighted_yaw_bias():
-    """rsu-se and rsu-nw are the RSUs whose plain mean yaw error is -0.12 / +0.18 deg over the first
+    """On the demo's frames as its RSUs run (the scenario's rsu_config). rsu-se and rsu-nw are the RSUs whose plain mean yaw error is -0.12 / +0.18 deg over the first
     60 s (far tags seen at a grazing angle, whose cells are 1-2 px tall, err by 2 stated sigmas), but
     whose errors weighted as a filter weighs them average 0.001 deg (docs/time-and-trust.md). The
     bound is 3 standard errors of that weighted mean, widened by the z-RMS when the stated yaw sigmas are
@@ -23,7 +23,9 @@ def test_the_live_pipelines_fixes_carry_no_weighted_yaw_bias():
         mean, se, z = r["weighted_mean_cm_deg"][2], r["weighted_se_cm_deg"][2], r["z_rms"][2]
         assert abs(mean) <= 3 * se * max(1.0, z), (rsu, r)
         assert abs(mean) < 0.02, (rsu, r)  # the drift detector's default floor
-        assert 0.5 < z < 2.5, (rsu, r)  # yaw sigmas stated within a factor of 2.5 (z-RMS 1.2-1.6 here)
+        # An honest covariance (the scenario's RSU settings: the renderer's turn ratio, 2): z-RMS 0.8-1.3
+        # here; with real photographs' ratio (1) positions are stated too large and yaw too small.
+        assert all(0.7 <= zi <= 1.5 for zi in r["z_rms"]), (rsu, r)
     # The far, grazing fixes are where the plain mean's yaw error comes from, and they say so.
     thin = [b for b in res["by_cell_px"] if b["cell_px"][1] is not None and b["cell_px"][1] <= 2.0]
     assert thin and all(b["reported_sigma_cm_deg"][2] > 0.1 for b in thin), res["by_cell_px"]
