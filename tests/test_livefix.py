@@ -11,12 +11,13 @@ pytestmark = pytest.mark.unit
 
 
 def test_the_live_pipelines_fixes_carry_no_weighted_yaw_bias():
-    """On the demo's frames as its RSUs run (the scenario's rsu_config). rsu-se and rsu-nw are the RSUs whose plain mean yaw error is -0.12 / +0.18 deg over the first
-    60 s (far tags seen at a grazing angle, whose cells are 1-2 px tall, err by 2 stated sigmas), but
-    whose errors weighted as a filter weighs them average 0.001 deg (docs/time-and-trust.md). The
-    bound is 3 standard errors of that weighted mean, widened by the z-RMS when the stated yaw sigmas are
-    too small. A half-pixel corner convention error moves rsu-nw's weighted mean to -0.032 deg (7 of its
-    standard errors, 0.0046 deg over 60 s). About 1 min of rendering."""
+    """On the demo's frames as its RSUs run (the scenario's rsu_config). rsu-se and rsu-nw are the RSUs
+    whose plain mean yaw error is -0.12 / +0.18 deg over the first 60 s (far tags seen at a grazing
+    angle, whose cells are 1-2 px tall, err by 2 stated sigmas), but whose errors weighted as a filter
+    weighs them average +0.003 / -0.006 deg (docs/time-and-trust.md). The bound is 3 standard errors of
+    that weighted mean, widened by the z-RMS when the stated yaw sigmas are too small. A half-pixel corner
+    convention error (PUPIL_TO_OPENCV 0) makes rsu-nw's weighted mean -0.043 deg, beyond it. About 30 s
+    of rendering."""
     res = run(bundled_scenario_path(), "bus-17", 20.0, 100.0, rsus=["rsu-se", "rsu-nw"])
     for rsu, r in res["rsus"].items():
         assert r["fixes"] >= 40, (rsu, r)

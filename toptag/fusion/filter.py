@@ -160,7 +160,7 @@ class FilterConfig(BaseModel):
     # A healthy RSU's constant bias (1 sigma per axis) beyond its fixes' stated calibration covariance:
     # the test weighs a disagreement against it as against the noise (toptag.fusion.trust). The live RSU
     # pipeline's own per-RSU bias on the demo's frames, weighted as the filter weighs fixes, is at most
-    # 0.3 cm and 0.012 deg (`toptag eval livefix`: weighted_mean_cm_deg, docs/time-and-trust.md).
+    # 0.3 cm and 0.013 deg (`toptag eval livefix`: weighted_mean_cm_deg, docs/time-and-trust.md).
     drift_bias_sigma_m: float = Field(default=0.005, ge=0)
     drift_bias_sigma_deg: float = Field(default=0.02, ge=0)
     # A fix's calibration share (Fix.calib_cov) is its RSU's constant bias, not noise; False: counted as
