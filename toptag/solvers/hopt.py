@@ -1,6 +1,7 @@
 """H.Opt.: (x, y, yaw) least squares of reprojection error with the tag plane fixed at the roof height."""
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -11,14 +12,13 @@ from toptag.solvers.common import (
     rms,
     safe_inverse,
 )
-from toptag.solvers.lm import levenberg_marquardt_batch
+from toptag.solvers import kernels
 from toptag.solvers.model import (
     KNOWN,
     Calibration,
     Corners,
     calib_columns,
     calib_residual_rms,
-    evaluate_level_batch,
     planar_theta,
 )
 
@@ -57,23 +57,21 @@ def initial_poses(c: Corners, h: float, masks: np.ndarray, yaw0: float | None = 
     return out
 
 
+@functools.lru_cache(maxsize=16)
+def _identity(n: int) -> np.ndarray:
+    return np.eye(n)  # H.Opt.'s whitener (never modified)
+
+
 def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: float | None = None,
              sigma_h: float = 0.0, calib: Calibration = KNOWN) -> Fit:
     """3-DOF fit from `start` = (x, y, yaw). The covariance adds the roof-height uncertainty sigma_h
     carried through dtheta/dh: the plane is fixed at h, so an error in h moves the answer; and likewise
     the cameras' calibration uncertainty when given."""
-
-    def normal(ps):
-        r_px, J4, front = evaluate_level_batch(c, np.column_stack([ps, np.full(len(ps), h)]))
-        J = J4[..., PLANAR]
-        Jt = J.transpose(0, 2, 1)
-        cost = np.where(front.all(axis=1), (r_px * r_px).sum(axis=1), np.inf)
-        return cost, Jt @ J, (Jt @ r_px[..., None])[..., 0], (r_px, J4, front)
-
-    res = levenberg_marquardt_batch(normal, np.asarray(start, dtype=float)[None])
-    p = res.theta[0]
-    converged = bool(res.converged[0])
-    r_px, J4, front = res.extra[0][0], res.extra[1][0], res.extra[2][0]
+    n2 = 2 * c.n
+    theta3, conv, r, J, front, _ = kernels.fit_level(c.level_projection, c.pixels, _identity(n2), np.ones((1, n2)),
+                                                     np.ones((1, c.n), dtype=bool), 0.0, float(h),
+                                                     np.array([start], dtype=float))
+    p, converged, r_px, J4, front = theta3[0], bool(conv[0]), r[0], J[0], front[0]
     in_front = bool(front.all())
     theta = planar_theta(p[0], p[1], p[2], h)
     J = J4[:, PLANAR]

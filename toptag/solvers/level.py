@@ -52,6 +52,7 @@ from scipy import stats
 from toptag.geometry import rodrigues
 from toptag.solvers.common import SIGMA_FLOOR_PX, SIGMA_PRIOR_PX, Fit, estimate_sigma, rms, safe_inverse
 from toptag.solvers.hopt import initial_pose, initial_poses
+from toptag.solvers import kernels
 from toptag.solvers.lm import LmResult, levenberg_marquardt_batch
 from toptag.solvers.model import (
     IX,
@@ -276,6 +277,14 @@ class LevelProblem:
 
     def minimise(self, p0, sigma: float) -> LmResult:
         """The least-squares p from p0, the pixels weighted with sigma."""
+        if not self.n_c:  # the RSU's case: the compiled level fit
+            p0 = np.asarray(p0, dtype=float)[None]
+            theta, conv, r, J, front, _ = kernels.fit_level(
+                self.c.level_projection, self.c.pixels, self.T, (self.row_w / sigma)[None],
+                np.ones((1, self.c.n), dtype=bool), self.prior[3] ** 2 if self.zfree else 0.0, self.h, p0)
+            res = LmResult(theta[0], bool(conv[0]), r[0], J[0][:, :self.n_pose])
+            self._evaluated = (res.theta.tobytes(), (res.r, res.J, bool(front[0].all())))
+            return res
         A = self.row_w[:, None] * self.T / sigma
         prior2 = self.prior ** 2
         offset = np.zeros(self.n_p)
@@ -471,28 +480,13 @@ class SubsetFits:
         ok_start = np.isfinite(starts[:, 0])
         zfree = self.sigma_h > 0
         n_p = 4 if zfree else 3
-        p0 = np.column_stack([starts, np.full(len(keys), h)])[:, :n_p]
+        p0 = np.ascontiguousarray(np.column_stack([starts, np.full(len(keys), h)])[:, :n_p])
         p0[~ok_start] = 0.0
         T = self.T
-
-        def fun(p):
-            r_px, J_px, front = evaluate_level_batch(c, _level_poses(p, h))
-            r_all, J_all = r_px @ T.T, T @ J_px  # whitened, every corner
-            r = r_all * row_w
-            J = J_all[..., :n_p] * row_w[..., None]
-            Jt = J.transpose(0, 2, 1)
-            cost, A, g = (r * r).sum(axis=1), Jt @ J, (Jt @ r[..., None])[..., 0]
-            if zfree:  # the roof-height prior's residual (z - h) / sigma_h
-                dz = (p[:, 3] - h) / self.sigma_h ** 2
-                cost += dz * (p[:, 3] - h)
-                A[:, 3, 3] += 1.0 / self.sigma_h ** 2
-                g[:, 3] += dz
-            cost[(~front & corner_mask).any(axis=1)] = np.inf
-            return cost, A, g, (r_all, J_all, front, r_px, J_px)
-
-        res = levenberg_marquardt_batch(fun, p0)
-        r_all, J_all, front, r_px, J_px = res.extra
-        usable = (ok_start & np.isfinite(res.theta).all(axis=1)).tolist()
+        theta, conv, r_px, J_px, front, _ = kernels.fit_level(c.level_projection, c.pixels, T, row_w, corner_mask,
+                                                              1.0 / self.sigma_h ** 2 if zfree else 0.0, h, p0)
+        r_all, J_all = r_px @ T.T, T @ J_px  # whitened, every corner
+        usable = (ok_start & np.isfinite(theta).all(axis=1)).tolist()
         if all(len(key) == len(c.units) for key in keys):
             # The fit of every unit is never a leave-one-out rest nor an own fit, the only readers of a
             # fit's dof and information: not computed (NaN, None).
@@ -506,9 +500,9 @@ class SubsetFits:
             H_inv = safe_inverse(H)
             trace = np.einsum("bij,bji->b", H_inv, JtJ).tolist()
             determined = np.isfinite(H_inv).all(axis=(1, 2)).tolist()
-        converged = (res.converged & (front | ~corner_mask).all(axis=1)).tolist()
+        converged = (conv & (front | ~corner_mask).all(axis=1)).tolist()
         thetas = np.zeros((len(keys), 6))
-        thetas[:, [IX, IY, IYAW, IZ]] = _level_poses(res.theta, h)
+        thetas[:, [IX, IY, IYAW, IZ]] = _level_poses(theta, h)
         out = []
         for b, key in enumerate(keys):
             if not usable[b]:
@@ -516,7 +510,7 @@ class SubsetFits:
                 continue
             rows = self.rows(key)
             dof = len(rows) - trace[b] / s_w ** 2 if determined[b] else 0.0
-            out.append(SubsetFit(key, c, res.theta[b], thetas[b], r_all[b, rows], J_all[b, rows, :n_p], dof,
+            out.append(SubsetFit(key, c, theta[b], thetas[b], r_all[b, rows], J_all[b, rows, :n_p], dof,
                                  converged[b], r_all[b], J_all[b], front[b], H[b], r_px[b], J_px[b]))
         return out
 

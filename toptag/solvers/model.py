@@ -16,10 +16,11 @@ import numpy as np
 
 from toptag.camera import Camera
 from toptag.detection import TagObservation
+from toptag.solvers import kernels
 from toptag.vehicle import Vehicle
 
 IX, IY, IYAW, IZ, IPITCH, IROLL = range(6)
-MIN_DEPTH = 1e-6  # metres in front of the camera; anything closer is "behind"
+MIN_DEPTH = kernels.MIN_DEPTH  # metres in front of the camera; anything closer is "behind"
 
 
 @dataclass(frozen=True)
@@ -63,37 +64,7 @@ class Corners:
         """(3N, 6): each corner's homogeneous pixel (K·X_cam, rows of 3) as a linear map of
         (x, y, z, cos yaw, sin yaw, 1) of a level roof (pitch = roll = 0): the roof corner (px, py, pz) is at
         world (x + px·cos − py·sin, y + px·sin + py·cos, z + pz)."""
-        Kh = np.zeros((self.n, 3, 3))
-        Kh[:, :2, :2] = self.cam_K
-        Kh[:, :2, 2] = self.cam_c
-        Kh[:, 2, 2] = 1.0
-        G = Kh @ self.cam_R  # world point to homogeneous pixel
-        g0 = np.einsum("nij,nj->ni", Kh, self.cam_t)
-        p = self.points
-        M = np.empty((self.n, 3, 6))
-        M[:, :, 0:3] = G
-        M[:, :, 3] = G[:, :, 0] * p[:, 0:1] + G[:, :, 1] * p[:, 1:2]
-        M[:, :, 4] = G[:, :, 1] * p[:, 0:1] - G[:, :, 0] * p[:, 1:2]
-        M[:, :, 5] = g0 + G[:, :, 2] * p[:, 2:3]
-        return M.reshape(-1, 6)
-
-    @functools.cached_property
-    def level_jacobian(self) -> np.ndarray:
-        """(N, 3, 4): d(homogeneous pixel)/d(x, y, yaw, z) of a level roof, yaw's column left 0 (it depends
-        on the pose)."""
-        M = self.level_projection.reshape(self.n, 3, 6)
-        out = np.zeros((self.n, 3, 4))
-        out[:, :, 0], out[:, :, 1], out[:, :, 3] = M[:, :, 0], M[:, :, 1], M[:, :, 2]
-        return out
-
-    @functools.cached_property
-    def rays(self) -> tuple[np.ndarray, np.ndarray]:
-        """(camera centre (N,3), world direction (N,3), not normalised) of each corner's ray."""
-        xn = np.linalg.solve(self.cam_K, (self.pixels - self.cam_c)[..., None])[..., 0]
-        d_cam = np.concatenate([xn, np.ones((self.n, 1))], axis=1)
-        d = np.einsum("nji,nj->ni", self.cam_R, d_cam)  # R^T d_cam
-        centre = -np.einsum("nji,nj->ni", self.cam_R, self.cam_t)
-        return centre, d
+        return kernels.level_projection(self.cam_K, self.cam_c, self.cam_R, self.cam_t, self.points)
 
     def backprojected(self, h: float) -> np.ndarray:
         """Observed corners back-projected onto the world plane z = h (N,3), NaN where the ray misses
@@ -101,11 +72,7 @@ class Corners:
         last = self.__dict__.get("_backprojected")
         if last is not None and last[0] == h:
             return last[1]
-        centre, d = self.rays
-        dz = d[:, 2]
-        s = (h - centre[:, 2]) / np.where(dz != 0.0, dz, np.nan)
-        s = np.where(s > 0, s, np.nan)
-        W = centre + s[:, None] * d
+        W = kernels.backproject(self.cam_K, self.cam_c, self.cam_R, self.cam_t, self.pixels, float(h))
         self.__dict__["_backprojected"] = (h, W)
         return W
 
@@ -275,33 +242,14 @@ def evaluate_level(c: Corners, x: float, y: float, yaw: float, z: float) -> tupl
     return r[0], J[0], bool(front[0].all())
 
 
-_QUARTER_TURN = np.array([0.0, math.pi / 2.0])
-
-
 def evaluate_level_batch(c: Corners, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`evaluate_level` at B level poses P (B, 4) = (x, y, yaw, z) at once: pixel residuals (B, 2N), their
     Jacobians (B, 2N, 4) and whether each corner is in front of its camera (B, N).
 
     The homogeneous pixel of a level roof's corner is linear in (x, y, z, cos yaw, sin yaw, 1)
-    (Corners.level_projection), so one matrix product gives every corner's pixel and its yaw derivative."""
-    P = np.asarray(P, dtype=float)
-    n_b = len(P)
-    # Column 0: (x, y, z, cos, sin, 1); column 1, its yaw derivative: (0, 0, 0, -sin, cos, 0).
-    V = np.zeros((n_b, 6, 2))
-    V[:, :3, 0] = P[:, [0, 1, 3]]
-    angle = P[:, 2:3] + _QUARTER_TURN
-    V[:, 3, :], V[:, 4, :] = np.cos(angle), np.sin(angle)  # (cos, -sin), (sin, cos)
-    V[:, 5, 0] = 1.0
-    Q = (c.level_projection @ V).reshape(n_b, c.n, 3, 2)  # homogeneous pixels and their yaw derivative
-    dq = np.repeat(c.level_jacobian[None], n_b, axis=0)  # (B, N, 3, 4): d(q)/d(x, y, yaw, z)
-    dq[..., 2] = Q[..., 1]
-    Z = Q[:, :, 2, 0]
-    # A corner at depth 0 divides by zero: its residual is then not finite, and the caller (solve, under
-    # np.errstate) refuses the pose through the in-front mask. No errstate here: this is the inner loop.
-    iz = (1.0 / Z)[..., None]
-    uv = Q[:, :, :2, 0] * iz
-    J = (dq[:, :, :2, :] - uv[..., None] * dq[:, :, 2:3, :]) * iz[..., None]
-    return (uv - c.pixels).reshape(n_b, -1), J.reshape(n_b, -1, 4), Z > MIN_DEPTH
+    (Corners.level_projection). A corner at depth 0 divides by zero: its residual is then not finite, and
+    the caller refuses the pose through the in-front mask."""
+    return kernels.evaluate_level(c.level_projection, c.pixels, np.ascontiguousarray(P, dtype=float))
 
 
 # ---- camera calibration ------------------------------------------------------------------------

@@ -1,0 +1,260 @@
+"""Compiled kernels (numba) of the level-roof model: its projection, its evaluation and its
+Levenberg–Marquardt fit, which every solve runs (H.Opt., the level solver, the outlier test's fits).
+
+Why compiled. These are fixed-size problems (a few dozen residuals, 3 or 4 unknowns): in numpy each
+step is a few dozen calls of 1-3 µs on arrays of 16 numbers, most of a solve's cost; as one compiled
+loop a whole fit costs a few µs. The arithmetic is the numpy code's, so results agree to rounding.
+
+`cache=True`: numba compiles each kernel on its first call (a few seconds for all of them) and keeps the
+machine code beside this file (`__pycache__`), or where NUMBA_CACHE_DIR points when that is not
+writable (a read-only install): later processes load it in milliseconds.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+MIN_DEPTH = 1e-6  # model.MIN_DEPTH (model imports this module)
+COST_RTOL = 1e-10  # relative cost change that is rounding or negligible (~1e-5 sigma), not progress
+PROMISED_RTOL = 1e-7  # a step promising less than this fraction of the cost is not worth trying
+LAMBDA0 = 1e-4  # the damping it starts with; the promised-decrease stop applies while it is no larger
+
+
+@njit(cache=True)
+def level_projection(cam_K, cam_c, cam_R, cam_t, points):
+    """(3N, 6): each corner's homogeneous pixel (K·X_cam) as a linear map of (x, y, z, cos yaw, sin yaw, 1)
+    of a level roof (see model.Corners.level_projection)."""
+    n = points.shape[0]
+    M = np.empty((3 * n, 6))
+    Kh = np.zeros((3, 3))
+    Kh[2, 2] = 1.0
+    for i in range(n):
+        Kh[0, 0], Kh[0, 1], Kh[1, 0], Kh[1, 1] = cam_K[i, 0, 0], cam_K[i, 0, 1], cam_K[i, 1, 0], cam_K[i, 1, 1]
+        Kh[0, 2], Kh[1, 2] = cam_c[i, 0], cam_c[i, 1]
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        for a in range(3):
+            g0 = Kh[a, 0] * cam_R[i, 0, 0] + Kh[a, 1] * cam_R[i, 1, 0] + Kh[a, 2] * cam_R[i, 2, 0]
+            g1 = Kh[a, 0] * cam_R[i, 0, 1] + Kh[a, 1] * cam_R[i, 1, 1] + Kh[a, 2] * cam_R[i, 2, 1]
+            g2 = Kh[a, 0] * cam_R[i, 0, 2] + Kh[a, 1] * cam_R[i, 1, 2] + Kh[a, 2] * cam_R[i, 2, 2]
+            t = Kh[a, 0] * cam_t[i, 0] + Kh[a, 1] * cam_t[i, 1] + Kh[a, 2] * cam_t[i, 2]
+            row = 3 * i + a
+            M[row, 0], M[row, 1], M[row, 2] = g0, g1, g2
+            M[row, 3] = g0 * px + g1 * py
+            M[row, 4] = g1 * px - g0 * py
+            M[row, 5] = t + g2 * pz
+    return M
+
+
+@njit(cache=True)
+def backproject(cam_K, cam_c, cam_R, cam_t, pixels, h):
+    """Every corner's ray met with the world plane z = h (N, 3), NaN where the ray misses it."""
+    n = pixels.shape[0]
+    W = np.empty((n, 3))
+    for i in range(n):
+        # Normalised camera ray K⁻¹ (u − c), then its world direction R^T d.
+        k00, k01, k10, k11 = cam_K[i, 0, 0], cam_K[i, 0, 1], cam_K[i, 1, 0], cam_K[i, 1, 1]
+        u, v = pixels[i, 0] - cam_c[i, 0], pixels[i, 1] - cam_c[i, 1]
+        det = k00 * k11 - k01 * k10
+        xn, yn = (k11 * u - k01 * v) / det, (k00 * v - k10 * u) / det
+        d = np.empty(3)
+        centre = np.empty(3)
+        for a in range(3):
+            d[a] = cam_R[i, 0, a] * xn + cam_R[i, 1, a] * yn + cam_R[i, 2, a]
+            centre[a] = -(cam_R[i, 0, a] * cam_t[i, 0] + cam_R[i, 1, a] * cam_t[i, 1] + cam_R[i, 2, a] * cam_t[i, 2])
+        s = (h - centre[2]) / d[2] if d[2] != 0.0 else math.nan
+        if not s > 0.0:
+            s = math.nan
+        for a in range(3):
+            W[i, a] = centre[a] + s * d[a]
+    return W
+
+
+@njit(cache=True)
+def _evaluate_into(M, pixels, x, y, yaw, z, r, J, front):
+    """The level model at (x, y, yaw, z): pixel residuals r (2N,), their Jacobian J (2N, 4) over
+    (x, y, yaw, z) and each corner in front of its camera (N,), written into the given arrays."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    for i in range(pixels.shape[0]):
+        q = np.empty(3)
+        qy = np.empty(3)
+        for a in range(3):
+            m = M[3 * i + a]
+            q[a] = m[0] * x + m[1] * y + m[2] * z + m[3] * c + m[4] * s + m[5]
+            qy[a] = -m[3] * s + m[4] * c  # its yaw derivative
+        front[i] = q[2] > MIN_DEPTH
+        iz = 1.0 / q[2]
+        for a in range(2):
+            uv = q[a] * iz
+            r[2 * i + a] = uv - pixels[i, a]
+            ma, m2 = M[3 * i + a], M[3 * i + 2]
+            J[2 * i + a, 0] = (ma[0] - uv * m2[0]) * iz
+            J[2 * i + a, 1] = (ma[1] - uv * m2[1]) * iz
+            J[2 * i + a, 2] = (qy[a] - uv * qy[2]) * iz
+            J[2 * i + a, 3] = (ma[2] - uv * m2[2]) * iz
+
+
+@njit(cache=True)
+def evaluate_level(M, pixels, P):
+    """The level model at B poses P (B, 4) = (x, y, yaw, z): residuals (B, 2N), Jacobians (B, 2N, 4),
+    in front (B, N)."""
+    n_b, n = P.shape[0], pixels.shape[0]
+    r = np.empty((n_b, 2 * n))
+    J = np.empty((n_b, 2 * n, 4))
+    front = np.empty((n_b, n), dtype=np.bool_)
+    for b in range(n_b):
+        _evaluate_into(M, pixels, P[b, 0], P[b, 1], P[b, 2], P[b, 3], r[b], J[b], front[b])
+    return r, J, front
+
+
+@njit(cache=True)
+def solve_small(A, b):
+    """x with A x = b (n ≤ a few) by Gaussian elimination with partial pivoting; (x, solvable)."""
+    n = len(b)
+    a = A.copy()
+    x = b.copy()
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(a[i, k]) > abs(a[p, k]):
+                p = i
+        if not (a[p, k] != 0.0 and math.isfinite(a[p, k])):
+            return x, False
+        if p != k:
+            for j in range(n):
+                a[k, j], a[p, j] = a[p, j], a[k, j]
+            x[k], x[p] = x[p], x[k]
+        for i in range(k + 1, n):
+            f = a[i, k] / a[k, k]
+            for j in range(k, n):
+                a[i, j] -= f * a[k, j]
+            x[i] -= f * x[k]
+    for k in range(n - 1, -1, -1):
+        acc = x[k]
+        for j in range(k + 1, n):
+            acc -= a[k, j] * x[j]
+        x[k] = acc / a[k, k]
+    return x, True
+
+
+@njit(cache=True)
+def _normal(M, pixels, W, row_w, need_front, z_prec, h, p, r_px, J_px, front, A, g):
+    """The weighted level problem at p (x, y, yaw[, z]; z = h when p has 3): evaluates the model into
+    r_px, J_px, front, its normal equations into A, g, and returns the cost |w·W r|² + z_prec (z − h)²
+    (inf when a corner that counts is behind its camera)."""
+    n_p = len(p)
+    z = p[3] if n_p == 4 else h
+    _evaluate_into(M, pixels, p[0], p[1], p[2], z, r_px, J_px, front)
+    m = len(r_px)
+    A[:, :] = 0.0
+    g[:] = 0.0
+    cost = 0.0
+    jw = np.empty(n_p)
+    for i in range(m):
+        w = row_w[i]
+        if w == 0.0:
+            continue
+        rw = 0.0
+        for k in range(n_p):
+            jw[k] = 0.0
+        for j in range(m):
+            t = W[i, j]
+            if t != 0.0:
+                rw += t * r_px[j]
+                for k in range(n_p):
+                    jw[k] += t * J_px[j, k]
+        rw *= w
+        cost += rw * rw
+        for k in range(n_p):
+            jk = jw[k] * w
+            g[k] += jk * rw
+            for l in range(k + 1):
+                A[k, l] += jk * jw[l] * w
+    for k in range(n_p):
+        for l in range(k):
+            A[l, k] = A[k, l]
+    if n_p == 4:
+        dz = p[3] - h
+        cost += z_prec * dz * dz
+        A[3, 3] += z_prec
+        g[3] += z_prec * dz
+    for i in range(len(front)):
+        if need_front[i] and not front[i]:
+            return math.inf
+    return cost
+
+
+@njit(cache=True)
+def fit_level(M, pixels, W, row_w, need_front, z_prec, h, P0, max_iter=60, step_tol=1e-11):
+    """Levenberg–Marquardt fits of B level problems from P0 (B, n_p), n_p 3 (x, y, yaw; z = h) or 4
+    (x, y, yaw, z with the prior precision z_prec about h). Problem b's residuals are row_w[b] · (W r_px)
+    (W: the whitener, (2N, 2N)); need_front[b]: the corners whose being behind their camera makes a pose
+    invalid. The same algorithm as lm.levenberg_marquardt_batch, step for step.
+    Returns (theta (B, n_p), converged (B,), and at theta: r_px (B, 2N), J_px (B, 2N, 4), front (B, N),
+    evaluations (B,))."""
+    n_b, n_p = P0.shape
+    n, m = pixels.shape[0], 2 * pixels.shape[0]
+    theta = P0.copy()
+    converged = np.zeros(n_b, dtype=np.bool_)
+    r_out = np.empty((n_b, m))
+    J_out = np.empty((n_b, m, 4))
+    front_out = np.empty((n_b, n), dtype=np.bool_)
+    n_eval = np.zeros(n_b, dtype=np.int64)
+    A, g = np.empty((n_p, n_p)), np.empty(n_p)
+    A_new, g_new = np.empty((n_p, n_p)), np.empty(n_p)
+    r_new, J_new, front_new = np.empty(m), np.empty((m, 4)), np.empty(n, dtype=np.bool_)
+    D = np.empty((n_p, n_p))
+    for b in range(n_b):
+        p = theta[b]
+        r, J, front = r_out[b], J_out[b], front_out[b]
+        cost = _normal(M, pixels, W, row_w[b], need_front[b], z_prec, h, p, r, J, front, A, g)
+        n_eval[b] = 1
+        active = math.isfinite(cost)
+        lam = LAMBDA0
+        for _ in range(max_iter):
+            if not active:
+                break
+            dsum = 0.0
+            for k in range(n_p):
+                dsum += A[k, k]
+            for k in range(n_p):
+                for l in range(n_p):
+                    D[k, l] = A[k, l]
+                D[k, k] += lam * (A[k, k] + 1e-12 * (dsum + 1.0))
+            step, solved = solve_small(D, -g)
+            if not solved:
+                lam *= 10.0
+                continue
+            promised = 0.0
+            for k in range(n_p):
+                promised -= 0.5 * g[k] * step[k]
+            if lam <= LAMBDA0 and promised <= PROMISED_RTOL * cost:
+                converged[b] = True  # at the minimum, as far as any noise could tell
+                break
+            big_step, big_p = 0.0, 0.0
+            for k in range(n_p):
+                big_step = max(big_step, abs(step[k]))
+                big_p = max(big_p, abs(p[k]))
+            small = big_step < step_tol * (1.0 + big_p)
+            trial = p + step
+            cost_new = _normal(M, pixels, W, row_w[b], need_front[b], z_prec, h, trial, r_new, J_new, front_new,
+                               A_new, g_new)
+            n_eval[b] += 1
+            if cost_new <= cost:
+                p[:] = trial
+                r[:], J[:, :], front[:] = r_new, J_new, front_new
+                A[:, :], g[:] = A_new, g_new
+                c_old, cost = cost, cost_new
+                lam = max(lam * 0.1, 1e-12)
+                if small or c_old - cost_new <= COST_RTOL * c_old or cost_new == 0.0:
+                    converged[b] = True
+                    break
+            elif math.isfinite(cost_new) and (cost_new - cost <= COST_RTOL * cost or small):
+                converged[b] = True  # rounding noise at the minimum: no step can decrease the cost any more
+                break
+            else:
+                lam *= 10.0
+                if lam > 1e12:
+                    break
+    return theta, converged, r_out, J_out, front_out, n_eval
