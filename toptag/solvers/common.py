@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from toptag.geometry import wrap_angle
+from toptag.solvers import kernels
 from toptag.solvers.model import IX, IY, IYAW, Corners
 from toptag.vehicle import HEIGHT_SIGMA_DEFAULT as SIGMA_H_DEFAULT  # the prior of a bag that declares none
 
@@ -137,20 +138,10 @@ def estimate_sigma(ss: float, dof: float, floor: float = SIGMA_FLOOR_PX,
     return float(max(math.sqrt(s2), floor))
 
 
-MAX_CONDITION = 1e15  # a normal matrix more ill-conditioned than this does not determine its parameters
-
-
 def safe_inverse(A: np.ndarray) -> np.ndarray:
     """Inverse of a normal matrix (or of each of a stack (..., n, n)), all-inf where the data do not
     determine the parameters: singular, not finite, or a condition number (1-norm: within a factor n
-    of the 2-norm's) above MAX_CONDITION."""
+    of the 2-norm's) above kernels.MAX_CONDITION."""
     A = np.asarray(A, dtype=float)
-    try:
-        inv = np.linalg.inv(A)  # a non-finite A raises too (numpy reports its invalid values as singular)
-    except np.linalg.LinAlgError:
-        if A.ndim == 2:
-            return np.full_like(A, np.inf)
-        return np.stack([safe_inverse(a) for a in A.reshape(-1, *A.shape[-2:])]).reshape(A.shape)
-    # False for a non-finite inverse (its norm is not finite) as for an ill-conditioned A.
-    good = np.abs(A).sum(axis=-2).max(axis=-1) * np.abs(inv).sum(axis=-2).max(axis=-1) <= MAX_CONDITION
-    return inv if good.all() else np.where(good[..., None, None], inv, np.inf)
+    n = A.shape[-1]
+    return kernels.safe_inverse(np.ascontiguousarray(A).reshape(-1, n, n)).reshape(A.shape)

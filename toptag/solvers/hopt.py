@@ -10,7 +10,6 @@ from toptag.solvers.common import (
     Fit,
     estimate_sigma,
     rms,
-    safe_inverse,
 )
 from toptag.solvers import kernels
 from toptag.solvers.model import (
@@ -36,25 +35,8 @@ def initial_pose(c: Corners, h: float, yaw0: float | None) -> tuple[float, float
 def initial_poses(c: Corners, h: float, masks: np.ndarray, yaw0: float | None = None) -> np.ndarray:
     """`initial_pose` of each subset of c's corners (masks (B, N) bool) at once: (B, 3), NaN where fewer
     than two of its corners back-project onto the plane z = h."""
-    W = c.backprojected(h)
-    ok = np.isfinite(W[:, 0])
-    m = np.asarray(masks, dtype=bool) & ok
-    count = m.sum(axis=1)
-    w = m / np.maximum(count, 1)[:, None]
-    # Points of the plane as complex numbers: the mean back-projected and roof corner of each subset.
-    W = np.where(ok, W[:, 0] + 1j * W[:, 1], 0.0)
-    P = c.points[:, 0] + 1j * c.points[:, 1]
-    mw, mp = w @ W, w @ P
-    if yaw0 is None or not math.isfinite(yaw0):
-        # The planar rotation best mapping the roof corners onto the back-projected ones (2-D Kabsch):
-        # the angle of sum w·conj(P − mp)·(W − mw).
-        rot = np.exp(1j * np.angle(w @ (np.conj(P) * W) - np.conj(mp) * mw))
-    else:
-        rot = np.full(len(m), complex(math.cos(yaw0), math.sin(yaw0)))
-    origin = mw - rot * mp
-    out = np.column_stack([origin.real, origin.imag, np.angle(rot)])
-    out[count < 2] = np.nan
-    return out
+    m = np.ascontiguousarray(masks, dtype=bool)
+    return kernels.initial_poses(c.backprojected(h), c.points, m, float(yaw0) if yaw0 is not None and math.isfinite(yaw0) else math.nan)
 
 
 @functools.lru_cache(maxsize=16)
@@ -75,12 +57,8 @@ def fit_hopt(c: Corners, h: float, start: tuple[float, float, float], sigma_px: 
     in_front = bool(front.all())
     theta = planar_theta(p[0], p[1], p[2], h)
     J = J4[:, PLANAR]
-    N_inv = safe_inverse(J.T @ J)
     sigma = sigma_px if sigma_px is not None else estimate_sigma(float(r_px @ r_px), 2 * c.n - 3)
-    J_h = J4[:, 3]  # d(pixels)/d(roof height)
-    dtheta_dh = -N_inv @ (J.T @ J_h)
-    cov = sigma ** 2 * N_inv + sigma_h ** 2 * np.outer(dtheta_dh, dtheta_dh)
-    height_rms = sigma_h * rms(J_h + J @ dtheta_dh)
+    N_inv, cov, height_rms = kernels.planar_statistics(J4, float(sigma), float(sigma_h))
     calib_rms = 0.0
     if not calib.known:
         J_c = calib_columns(c, theta, calib)

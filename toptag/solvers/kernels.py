@@ -21,8 +21,12 @@ COST_RTOL = 1e-10  # relative cost change that is rounding or negligible (~1e-5 
 PROMISED_RTOL = 1e-7  # a step promising less than this fraction of the cost is not worth trying
 LAMBDA0 = 1e-4  # the damping it starts with; the promised-decrease stop applies while it is no larger
 
+# numpy's float semantics (x / 0 is inf or NaN, as the numpy code gave; Python's would raise), the
+# machine code cached on disk.
+compiled = njit(cache=True, error_model="numpy")
 
-@njit(cache=True)
+
+@compiled
 def level_projection(cam_K, cam_c, cam_R, cam_t, points):
     """(3N, 6): each corner's homogeneous pixel (K·X_cam) as a linear map of (x, y, z, cos yaw, sin yaw, 1)
     of a level roof (see model.Corners.level_projection)."""
@@ -47,7 +51,7 @@ def level_projection(cam_K, cam_c, cam_R, cam_t, points):
     return M
 
 
-@njit(cache=True)
+@compiled
 def backproject(cam_K, cam_c, cam_R, cam_t, pixels, h):
     """Every corner's ray met with the world plane z = h (N, 3), NaN where the ray misses it."""
     n = pixels.shape[0]
@@ -71,7 +75,7 @@ def backproject(cam_K, cam_c, cam_R, cam_t, pixels, h):
     return W
 
 
-@njit(cache=True)
+@compiled
 def _evaluate_into(M, pixels, x, y, yaw, z, r, J, front):
     """The level model at (x, y, yaw, z): pixel residuals r (2N,), their Jacobian J (2N, 4) over
     (x, y, yaw, z) and each corner in front of its camera (N,), written into the given arrays."""
@@ -95,7 +99,7 @@ def _evaluate_into(M, pixels, x, y, yaw, z, r, J, front):
             J[2 * i + a, 3] = (ma[2] - uv * m2[2]) * iz
 
 
-@njit(cache=True)
+@compiled
 def evaluate_level(M, pixels, P):
     """The level model at B poses P (B, 4) = (x, y, yaw, z): residuals (B, 2N), Jacobians (B, 2N, 4),
     in front (B, N)."""
@@ -108,7 +112,7 @@ def evaluate_level(M, pixels, P):
     return r, J, front
 
 
-@njit(cache=True)
+@compiled
 def solve_small(A, b):
     """x with A x = b (n ≤ a few) by Gaussian elimination with partial pivoting; (x, solvable)."""
     n = len(b)
@@ -138,7 +142,7 @@ def solve_small(A, b):
     return x, True
 
 
-@njit(cache=True)
+@compiled
 def _normal(M, pixels, W, row_w, need_front, z_prec, h, p, r_px, J_px, front, A, g):
     """The weighted level problem at p (x, y, yaw[, z]; z = h when p has 3): evaluates the model into
     r_px, J_px, front, its normal equations into A, g, and returns the cost |w·W r|² + z_prec (z − h)²
@@ -185,7 +189,7 @@ def _normal(M, pixels, W, row_w, need_front, z_prec, h, p, r_px, J_px, front, A,
     return cost
 
 
-@njit(cache=True)
+@compiled
 def fit_level(M, pixels, W, row_w, need_front, z_prec, h, P0, max_iter=60, step_tol=1e-11):
     """Levenberg–Marquardt fits of B level problems from P0 (B, n_p), n_p 3 (x, y, yaw; z = h) or 4
     (x, y, yaw, z with the prior precision z_prec about h). Problem b's residuals are row_w[b] · (W r_px)
@@ -258,3 +262,268 @@ def fit_level(M, pixels, W, row_w, need_front, z_prec, h, P0, max_iter=60, step_
                 if lam > 1e12:
                     break
     return theta, converged, r_out, J_out, front_out, n_eval
+
+
+# ---- covariances and the outlier test's gate ------------------------------------------------------
+MAX_CONDITION = 1e15  # a normal matrix more ill-conditioned than this does not determine its parameters
+
+
+@compiled
+def _inverse_into(A, out):
+    """out = A⁻¹ by Gauss–Jordan elimination with partial pivoting; False when A is singular or not
+    finite (out then undefined)."""
+    n = A.shape[0]
+    a = A.copy()
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 1.0 if i == j else 0.0
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(a[i, k]) > abs(a[p, k]):
+                p = i
+        piv = a[p, k]
+        if not (piv != 0.0 and math.isfinite(piv)):
+            return False
+        if p != k:
+            for j in range(n):
+                a[k, j], a[p, j] = a[p, j], a[k, j]
+                out[k, j], out[p, j] = out[p, j], out[k, j]
+        for j in range(n):
+            a[k, j] /= piv
+            out[k, j] /= piv
+        for i in range(n):
+            if i != k:
+                f = a[i, k]
+                if f != 0.0:
+                    for j in range(n):
+                        a[i, j] -= f * a[k, j]
+                        out[i, j] -= f * out[k, j]
+    return True
+
+
+@compiled
+def _norm1(A):
+    best = 0.0
+    for j in range(A.shape[1]):
+        s = 0.0
+        for i in range(A.shape[0]):
+            s += abs(A[i, j])
+        if not s <= best:  # a NaN column sum wins
+            best = s
+    return best
+
+
+@compiled
+def _safe_inverse_into(A, out):
+    """common.safe_inverse of one matrix into out; whether it is finite (determined)."""
+    if _inverse_into(A, out) and _norm1(A) * _norm1(out) <= MAX_CONDITION:
+        return True
+    out[:, :] = math.inf
+    return False
+
+
+@compiled
+def safe_inverse(A):
+    """Inverses of a stack (K, n, n) of normal matrices, all-inf where one does not determine its
+    parameters (singular, not finite, or 1-norm condition number above MAX_CONDITION)."""
+    out = np.empty_like(A)
+    for k in range(A.shape[0]):
+        _safe_inverse_into(A[k], out[k])
+    return out
+
+
+@compiled
+def linear_fits(r, J, masks, s2, z_prec, dz):
+    """One Gauss–Newton step from a pose (whitened residuals r (2N,), Jacobian J (2N, n_p)) for each of
+    B subsets of the rows (masks (B, 2N) of 0/1), the pixels weighed with variance s2 and, when n_p is
+    4, z with the prior precision z_prec (dz: the pose's z − h). Returns each subset's step (B, n_p),
+    every row's residual after it (B, 2N), its own rows' sum of squares (B,), degrees of freedom (B,;
+    NaN where the subset does not determine the pose) and normal matrix JᵀJ (B, n_p, n_p)."""
+    n_b, m, n_p = masks.shape[0], J.shape[0], J.shape[1]
+    step = np.zeros((n_b, n_p))
+    r_new = np.empty((n_b, m))
+    ss = np.zeros(n_b)
+    dof = np.empty(n_b)
+    JtJ = np.zeros((n_b, n_p, n_p))
+    H, H_inv, g = np.empty((n_p, n_p)), np.empty((n_p, n_p)), np.empty(n_p)
+    for b in range(n_b):
+        g[:] = 0.0
+        n_rows = 0.0
+        for i in range(m):
+            w = masks[b, i]
+            n_rows += w
+            if w == 0.0:
+                continue
+            for k in range(n_p):
+                jk = J[i, k] * w
+                g[k] += jk * r[i]
+                for l in range(n_p):
+                    JtJ[b, k, l] += jk * J[i, l]
+        for k in range(n_p):
+            g[k] /= s2
+            for l in range(n_p):
+                H[k, l] = JtJ[b, k, l] / s2
+        if n_p == 4:
+            H[3, 3] += z_prec
+            g[3] += dz * z_prec
+        if _safe_inverse_into(H, H_inv):
+            trace = 0.0
+            for k in range(n_p):
+                acc = 0.0
+                for l in range(n_p):
+                    acc -= H_inv[k, l] * g[l]
+                    trace += H_inv[k, l] * JtJ[b, l, k]
+                step[b, k] = acc
+            dof[b] = n_rows - trace / s2
+        else:
+            dof[b] = math.nan
+        for i in range(m):
+            acc = r[i]
+            for k in range(n_p):
+                acc += J[i, k] * step[b, k]
+            r_new[b, i] = acc
+            ss[b] += acc * acc * masks[b, i]
+    return step, r_new, ss, dof, JtJ
+
+
+@compiled
+def loo_covariance(Jk, GtG, s2, z_prec):
+    """For K left-out units (robust._loo_covariance): the covariance S_k = s2_k·I + J_k H_k⁻¹ J_kᵀ (K, m, m)
+    of each one's prediction error, H_k = GtG_k / s2_k (+ z_prec on z when n_p is 4), and H_k⁻¹."""
+    n_k, m, n_p = Jk.shape
+    S = np.empty((n_k, m, m))
+    H_inv = np.empty((n_k, n_p, n_p))
+    H = np.empty((n_p, n_p))
+    JH = np.empty((m, n_p))
+    for b in range(n_k):
+        for k in range(n_p):
+            for l in range(n_p):
+                H[k, l] = GtG[b, k, l] / s2[b]
+        if n_p == 4:
+            H[3, 3] += z_prec
+        _safe_inverse_into(H, H_inv[b])
+        for i in range(m):
+            for l in range(n_p):
+                acc = 0.0
+                for k in range(n_p):
+                    acc += Jk[b, i, k] * H_inv[b, k, l]
+                JH[i, l] = acc
+        for i in range(m):
+            for j in range(m):
+                acc = s2[b] if i == j else 0.0
+                for l in range(n_p):
+                    acc += JH[i, l] * Jk[b, j, l]
+                S[b, i, j] = acc
+    return S, H_inv
+
+
+@compiled
+def mahalanobis(e, S):
+    """e_kᵀ S_k⁻¹ e_k for each k (NaN where S_k is singular)."""
+    n_k = e.shape[0]
+    d = np.empty(n_k)
+    for b in range(n_k):
+        x, ok = solve_small(S[b], e[b])
+        if ok:
+            acc = 0.0
+            for i in range(len(x)):
+                acc += e[b, i] * x[i]
+            d[b] = acc
+        else:
+            d[b] = math.nan
+    return d
+
+
+# ---- starts and whiteners ----------------------------------------------------------------------
+@compiled
+def initial_poses(W, points, masks, yaw0):
+    """hopt.initial_poses: (B, 3) starts (x, y, yaw) of B subsets of the corners (masks (B, N)) from their
+    back-projections W (N, 3) (NaN rows: missed the plane) and roof points (N, 3); yaw0 NaN: each
+    subset's planar Kabsch rotation, else that yaw. NaN rows where fewer than two corners back-project."""
+    n_b, n = masks.shape
+    out = np.empty((n_b, 3))
+    for b in range(n_b):
+        count = 0
+        for i in range(n):
+            if masks[b, i] and math.isfinite(W[i, 0]):
+                count += 1
+        w = 1.0 / max(count, 1)
+        mw, mp = 0j, 0j
+        cross = 0j
+        for i in range(n):
+            if masks[b, i] and math.isfinite(W[i, 0]):
+                wi = complex(W[i, 0], W[i, 1])
+                pi = complex(points[i, 0], points[i, 1])
+                mw += w * wi
+                mp += w * pi
+                cross += w * (pi.conjugate() * wi)
+        if math.isnan(yaw0):
+            z = cross - mp.conjugate() * mw
+            yaw = math.atan2(z.imag, z.real)
+        else:
+            yaw = math.atan2(math.sin(yaw0), math.cos(yaw0))
+        origin = mw - complex(math.cos(yaw), math.sin(yaw)) * mp
+        if count < 2:
+            out[b, 0] = out[b, 1] = out[b, 2] = math.nan
+        else:
+            out[b, 0], out[b, 1], out[b, 2] = origin.real, origin.imag, yaw
+    return out
+
+
+@compiled
+def edge_blocks(pixels, edge_map, edge_of, normal_axis):
+    """level.edge_blocks for a turn ratio: (T, 8, 8) per tag of 4 consecutive corners, its edges' unit
+    directions (edge a: corner a -> a + 1) read at (edge_of, normal_axis) and mapped by edge_map (32, 64)."""
+    n_t = pixels.shape[0] // 4
+    out = np.zeros((n_t, 8, 8))
+    u = np.empty((4, 2))
+    v = np.empty(32)
+    for t in range(n_t):
+        for a in range(4):
+            i, j = 4 * t + a, 4 * t + (a + 1) % 4
+            dx, dy = pixels[j, 0] - pixels[i, 0], pixels[j, 1] - pixels[i, 1]
+            norm = math.sqrt(dx * dx + dy * dy)
+            u[a, 0], u[a, 1] = dx / norm, dy / norm
+        for k in range(32):
+            v[k] = u[edge_of[k], normal_axis[k]]
+        for e in range(64):
+            acc = 0.0
+            for k in range(32):
+                acc += v[k] * edge_map[k, e]
+            out[t, e // 8, e % 8] = acc
+    return out
+
+
+@compiled
+def planar_statistics(J4, sigma, sigma_h):
+    """H.Opt.'s covariance at its minimum (Jacobian J4 (2N, 4) over x, y, yaw, z; z is not fitted):
+    (N⁻¹ of the fitted columns (3, 3), sigma² N⁻¹ + sigma_h² (dθ/dh)(dθ/dh)ᵀ (3, 3), and the RMS per
+    corner of the pixel residual a one-sigma height error leaves, sigma_h · rms(J_h + J dθ/dh))."""
+    m = J4.shape[0]
+    N = np.zeros((3, 3))
+    Jh = np.zeros(3)
+    for i in range(m):
+        for k in range(3):
+            Jh[k] += J4[i, k] * J4[i, 3]
+            for l in range(3):
+                N[k, l] += J4[i, k] * J4[i, l]
+    N_inv = np.empty((3, 3))
+    _safe_inverse_into(N, N_inv)
+    dth = np.zeros(3)
+    for k in range(3):
+        for l in range(3):
+            dth[k] -= N_inv[k, l] * Jh[l]
+    cov = np.empty((3, 3))
+    for k in range(3):
+        for l in range(3):
+            cov[k, l] = sigma * sigma * N_inv[k, l] + sigma_h * sigma_h * dth[k] * dth[l]
+    ss = 0.0
+    for i in range(m):
+        acc = J4[i, 3]
+        for k in range(3):
+            acc += J4[i, k] * dth[k]
+        ss += acc * acc
+    n = m // 2
+    height_rms = sigma_h * math.sqrt(ss / n) if n else math.nan
+    return N_inv, cov, height_rms

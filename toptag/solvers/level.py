@@ -132,14 +132,10 @@ def edge_blocks(pixels: np.ndarray, turn_ratio: float | None) -> np.ndarray:
     """(T, 8, 8) per tag (4 corners each, rows in order): its corner residuals (x0, y0, x1, ...) to its
     edges' offsets and turns (turns over turn_ratio), edge normals from the observed quad. Residuals of
     equal variance under the edge-line noise model; identity for turn_ratio None."""
-    q = np.asarray(pixels, dtype=float).reshape(-1, 4, 2)
-    n_tags = len(q)
+    q = np.ascontiguousarray(pixels, dtype=float).reshape(-1, 2)
     if not turn_ratio:
-        return np.broadcast_to(np.eye(8), (n_tags, 8, 8)).copy()
-    u = q[:, [1, 2, 3, 0]] - q  # edge a: corner a -> a+1
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = u / np.sqrt((u * u).sum(axis=2, keepdims=True))
-    return (u[:, _EDGE_OF, _NORMAL_AXIS] @ _edge_map(turn_ratio)).reshape(n_tags, 8, 8)
+        return np.broadcast_to(np.eye(8), (len(q) // 4, 8, 8)).copy()
+    return kernels.edge_blocks(q, _edge_map(turn_ratio), _EDGE_OF, _NORMAL_AXIS)
 
 
 @functools.lru_cache(maxsize=8)
@@ -531,20 +527,10 @@ class SubsetFits:
         linear model, and within a small fraction of sigma of the real fits near a consistent frame's
         optimum. sigma_w: the pixels weighed with this whitened sigma instead of the fits' own."""
         n_p, s2 = len(about.p), (self.sigma_w if sigma_w is None else sigma_w) ** 2
-        r, J = about.all_r_white, about.all_J_white[:, :n_p]
-        Jm = J[None] * masks[..., None]
-        JtJ = np.swapaxes(Jm, 1, 2) @ J
-        H = JtJ / s2
-        g = np.swapaxes(Jm, 1, 2) @ r / s2
-        if n_p == 4:  # the roof-height prior
-            H[:, 3, 3] += 1.0 / self.sigma_h ** 2
-            g[:, 3] += (about.p[3] - self.h) / self.sigma_h ** 2
-        H_inv = safe_inverse(H)
-        determined = np.isfinite(H_inv).all(axis=(1, 2))
-        step = -np.einsum("bij,bj->bi", np.where(determined[:, None, None], H_inv, 0.0), g)
-        r_new = r + step @ J.T
-        dof = np.where(determined, masks.sum(axis=1) - np.einsum("bij,bji->b", H_inv, JtJ) / s2, np.nan)
-        return LinearFits(about.p + step, r_new, ((r_new * r_new) * masks).sum(axis=1), dof, JtJ)
+        z_prec, dz = (1.0 / self.sigma_h ** 2, about.p[3] - self.h) if n_p == 4 else (0.0, 0.0)
+        step, r_new, ss, dof, JtJ = kernels.linear_fits(about.all_r_white, np.ascontiguousarray(about.all_J_white[:, :n_p]),
+                                                        np.asarray(masks, dtype=float), s2, z_prec, dz)
+        return LinearFits(about.p + step, r_new, ss, dof, JtJ)
 
     def _fit_calibrated(self, k: int, calib: Calibration) -> SubsetFit | None:
         """Unit k alone with its camera's uncertain extrinsic corrections as unknowns."""

@@ -35,7 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from toptag.solvers.common import SIGMA_PRIOR_PX, Fit, safe_inverse
+from toptag.solvers import kernels
+from toptag.solvers.common import SIGMA_PRIOR_PX, Fit
 from toptag.solvers.level import SubsetFit, SubsetFits, noise_scale
 from toptag.solvers.model import (
     KNOWN,
@@ -240,25 +241,13 @@ def _loo_covariance(Jk: np.ndarray, GtG: np.ndarray, ss: np.ndarray, dof: np.nda
         dof = np.maximum(dof, 0.0)
         s2 = (ss + PRIOR_DOF * (SCREEN_PRIOR_PX / scale) ** 2) / (dof + PRIOR_DOF)
         thr = [_threshold(alpha, m, int(math.floor((d + PRIOR_DOF) * 10))) for d in dof.tolist()]
-    H = GtG / s2[:, None, None]
-    if Jk.shape[2] == 4:
-        H[:, 3, 3] += 1.0 / sigma_h ** 2
-    H_inv = safe_inverse(H)
-    return s2[:, None, None] * np.eye(m) + Jk @ H_inv @ np.swapaxes(Jk, 1, 2), H_inv, s2, thr
+    S, H_inv = kernels.loo_covariance(np.ascontiguousarray(Jk), GtG, s2, 1.0 / sigma_h ** 2 if Jk.shape[2] == 4 else 0.0)
+    return S, H_inv, s2, thr
 
 
 def _mahalanobis(e: np.ndarray, S: np.ndarray) -> list[float]:
     """e_kᵀ S_k⁻¹ e_k for each k (NaN where S_k is singular)."""
-    try:
-        return np.einsum("ki,ki->k", e, np.linalg.solve(S, e[..., None])[..., 0]).tolist()
-    except np.linalg.LinAlgError:  # one singular S: each on its own
-        d = [math.nan] * len(e)
-        for j in range(len(e)):
-            try:
-                d[j] = float(e[j] @ np.linalg.solve(S[j], e[j]))
-            except np.linalg.LinAlgError:
-                pass
-        return d
+    return kernels.mahalanobis(np.ascontiguousarray(e), S).tolist()
 
 
 def implausibility(fit: Fit, layout_fit: Fit, h: float, limits: Limits, sigma_px: float | None) -> str | None:
