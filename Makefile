@@ -10,6 +10,7 @@ setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/python -m toptag.solvers.warmup  # the solvers' numba kernels into their on-disk cache
 	touch $@
 
 # The live view's browser test drives Debian's chromium headless (Playwright's own browser download

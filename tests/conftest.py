@@ -25,6 +25,16 @@ REPO = Path(__file__).resolve().parents[1]
 SUMMARY = "summary"
 
 
+def pytest_configure(config):
+    """The solvers' compiled kernels into numba's on-disk cache once, before any test (or process a test
+    starts) solves: a process without the cache compiles them on its first solve, seconds of CPU
+    (toptag/solvers/warmup.py). xdist's workers start after the controller's configure."""
+    if not hasattr(config, "workerinput"):
+        from toptag.solvers.warmup import warm_up
+
+        warm_up()
+
+
 def pytest_terminal_summary(terminalreporter, config):
     lines: dict[str, str] = {}
     for reports in terminalreporter.stats.values():

@@ -470,7 +470,7 @@ class SubsetFits:
         in_key = np.zeros((len(keys), len(c.units)), dtype=bool)
         for b, key in enumerate(keys):
             in_key[b, list(key)] = True
-        corner_mask = in_key[:, c.unit_of]  # (B, N)
+        corner_mask = np.ascontiguousarray(in_key[:, c.unit_of])  # (B, N)
         row_w = np.repeat(corner_mask, 2, axis=1) / s_w  # (B, 2N): the subset's rows, over sigma
         starts = initial_poses(c, h, corner_mask)
         ok_start = np.isfinite(starts[:, 0])

@@ -17,9 +17,8 @@ from typing import Callable
 
 import numpy as np
 
-COST_RTOL = 1e-10  # relative cost change that is rounding or negligible (~1e-5 sigma), not progress
-PROMISED_RTOL = 1e-7  # a step promising less than this fraction of the cost is not worth trying
-LAMBDA0 = 1e-4  # the damping it starts with; the promised-decrease stop applies while it is no larger
+# The stopping rules, shared with the compiled level fit (kernels.fit_level, the same algorithm).
+from toptag.solvers.kernels import COST_RTOL, LAMBDA0, PROMISED_RTOL
 
 ResidualFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
