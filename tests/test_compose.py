@@ -212,6 +212,13 @@ def test_runtime_image_leaves_out_the_studies(docker_host):
     assert "--camera" in p.stdout
 
 
+def test_image_carries_the_solvers_compiled_kernels(docker_host):
+    """The image build compiled the solvers' numba kernels into their cache (docker/Dockerfile): a container
+    loads every one of them and compiles none, so no RSU container spends seconds of CPU on it at its start."""
+    p = run(["docker", "run", "--rm", "--entrypoint", "python", IMAGE, "-m", "toptag.solvers.warmup"], timeout=300)
+    assert "(0 compiled, the rest from the cache)" in p.stdout, p.stdout
+
+
 def test_plain_demo_runs_in_compose_and_stops_cleanly(docker_host, tmp_path, monkeypatch):
     res = _run_demo(docker_host, "toptag-ci-plain", False, tmp_path, monkeypatch)
     _assert_clean_exit(res["containers"], SERVICES)
