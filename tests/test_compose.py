@@ -214,7 +214,8 @@ def test_runtime_image_leaves_out_the_studies(docker_host):
 
 def test_image_carries_the_solvers_compiled_kernels(docker_host):
     """The image build compiled the solvers' numba kernels into their cache (docker/Dockerfile): a container
-    loads every one of them and compiles none, so no RSU container spends seconds of CPU on it at its start."""
+    loads every one of them and compiles none, so no RSU container spends seconds of CPU on it at its
+    start."""
     p = run(["docker", "run", "--rm", "--entrypoint", "python", IMAGE, "-m", "toptag.solvers.warmup"], timeout=300)
     assert "(0 compiled, the rest from the cache)" in p.stdout, p.stdout
 

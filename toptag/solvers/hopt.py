@@ -36,7 +36,8 @@ def initial_poses(c: Corners, h: float, masks: np.ndarray, yaw0: float | None = 
     """`initial_pose` of each subset of c's corners (masks (B, N) bool) at once: (B, 3), NaN where fewer
     than two of its corners back-project onto the plane z = h."""
     m = np.ascontiguousarray(masks, dtype=bool)
-    return kernels.initial_poses(c.backprojected(h), c.points, m, float(yaw0) if yaw0 is not None and math.isfinite(yaw0) else math.nan)
+    yaw = float(yaw0) if yaw0 is not None and math.isfinite(yaw0) else math.nan
+    return kernels.initial_poses(c.backprojected(h), c.points, m, yaw)
 
 
 @functools.lru_cache(maxsize=16)

@@ -528,8 +528,9 @@ class SubsetFits:
         optimum. sigma_w: the pixels weighed with this whitened sigma instead of the fits' own."""
         n_p, s2 = len(about.p), (self.sigma_w if sigma_w is None else sigma_w) ** 2
         z_prec, dz = (1.0 / self.sigma_h ** 2, about.p[3] - self.h) if n_p == 4 else (0.0, 0.0)
-        step, r_new, ss, dof, JtJ = kernels.linear_fits(about.all_r_white, np.ascontiguousarray(about.all_J_white[:, :n_p]),
-                                                        np.asarray(masks, dtype=float), s2, z_prec, dz)
+        J = np.ascontiguousarray(about.all_J_white[:, :n_p])
+        step, r_new, ss, dof, JtJ = kernels.linear_fits(about.all_r_white, J, np.asarray(masks, dtype=float), s2,
+                                                        z_prec, dz)
         return LinearFits(about.p + step, r_new, ss, dof, JtJ)
 
     def _fit_calibrated(self, k: int, calib: Calibration) -> SubsetFit | None:

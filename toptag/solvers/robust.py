@@ -241,7 +241,8 @@ def _loo_covariance(Jk: np.ndarray, GtG: np.ndarray, ss: np.ndarray, dof: np.nda
         dof = np.maximum(dof, 0.0)
         s2 = (ss + PRIOR_DOF * (SCREEN_PRIOR_PX / scale) ** 2) / (dof + PRIOR_DOF)
         thr = [_threshold(alpha, m, int(math.floor((d + PRIOR_DOF) * 10))) for d in dof.tolist()]
-    S, H_inv = kernels.loo_covariance(np.ascontiguousarray(Jk), GtG, s2, 1.0 / sigma_h ** 2 if Jk.shape[2] == 4 else 0.0)
+    z_prec = 1.0 / sigma_h ** 2 if Jk.shape[2] == 4 else 0.0
+    S, H_inv = kernels.loo_covariance(np.ascontiguousarray(Jk), GtG, s2, z_prec)
     return S, H_inv, s2, thr
 
 
