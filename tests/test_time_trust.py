@@ -455,6 +455,47 @@ def test_on_a_starved_machine_the_turned_camera_is_flagged_over_passes(turn):
     assert flagged[120.0] is not None and flagged[120.0] >= 1 and flagged[0.0] is None, flagged
 
 
+WELL_CALIBRATED = FixErrorModel(calib_rot_sigma_deg=0.02, calib_trans_sigma=0.01)  # a realistic stated calibration
+
+
+def _pass(k: int, cameras, faults: dict, seed: int, memory, **config) -> BusFilter:
+    """The bus's k-th pass (a left turn, 60 s after the last) seen by cameras standing off their surveyed
+    poses (one calibration draw), its filter starting from the last one's memory."""
+    tr = bus_trajectory("left", "w", seed=0, t0_ns=bus_trajectory("left", "w", seed=0).t0_ns + k * 60 * 10**9)
+    imu = ImuModel().synthesize(tr, 0.0, tr.duration, np.random.default_rng(50 + k))
+    fixes = simulate_fixes(tr, WELL_CALIBRATED, 4, np.random.default_rng(100 * seed + k), faults=faults, cameras=cameras)
+    return drive(study_filter(memory=memory, **config), imu, arrivals(fixes, faults, jitter_ms=30, seed=k))
+
+
+def test_a_step_within_the_calibration_is_flagged_against_the_rsus_own_past():
+    """A 0.2 deg turn of a camera calibrated to 0.02 deg / 1 cm is within what its calibration allows
+    (the test against the others weighs its whole bias), but not within how its fixes compared with the
+    others' on the bus's earlier passes, where its constant bias was the same: the change test flags it
+    on the first pass after the step ("has moved", with the turn's size), and no other RSU; two passes
+    without a fault flag nothing. With no long-run deviation kept (drift_baseline_window_s = 0) the turn
+    goes unflagged."""
+    from sim.studies.fusion import draw_cameras
+
+    faults = faults_from_options(drift_deg="rsu-se=0.2@0")
+    flagged = without = 0
+    for seed in range(2):
+        cams = draw_cameras(WELL_CALIBRATED, 4, np.random.default_rng(70 + seed))
+        mem = None
+        for k in range(2):
+            flt = _pass(k, cams, {}, seed, mem)
+            assert not any(v.flagged for v in flt.rsu_assessments().values()), (seed, k)
+            mem = flt.memory()
+        a = _pass(2, cams, faults, seed, mem).rsu_assessments()
+        assert not any(v.flagged for r, v in a.items() if r != "rsu-se"), (seed, a)
+        se = a["rsu-se"]
+        if se.flagged:
+            flagged += 1
+            assert se.flagged_by == "change" and "has moved" in se.advice
+            assert 0.1 < math.degrees(-se.disagreement[2]) < 0.3, se  # the turn's size, in the fixes' yaw
+        without += _pass(2, cams, faults, seed, mem, drift_baseline_window_s=0.0).rsu_assessments()["rsu-se"].flagged
+    assert flagged == 2 and without == 0, (flagged, without)
+
+
 # ----------------------------------------------------------------------------- accounting
 def test_every_fix_path_is_counted(turn):
     traj, imu = turn

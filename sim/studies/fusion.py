@@ -33,6 +33,12 @@ RSU keeps its surveyed camera, so its fixes turn the other way about its pole: s
 With faults, every latency is run twice on the same noise (common random numbers): fault-free and
 faulted; results.json holds both cases and their ratios.
 
+Passes (`--passes N`, default 1): each run is N passes of the same bus through the intersection (the
+routes in turn), `--pass-gap-s` apart, seen by the same cameras (one calibration draw per run); each
+pass's filter starts from what the last one learnt (BusFilter(memory=...), as a bus agent does), so the
+drift detector has each RSU's long-run deviation from the others to compare a pass with (the change
+test, toptag.fusion.trust). Times of faults and flags count from the run's start (its first pass).
+
 Writes DIR/results.json and the plots (fusion_error_vs_latency.png, fusion_trajectory_error.png,
 fusion_nees.png; with faults also fusion_offsets.png and fusion_drift.png).
 Run: `python -m sim.studies.fusion --out DIR` (or `toptag eval fusion`).
@@ -50,7 +56,7 @@ import numpy as np
 
 from sim.faults import RsuFault, describe, faults_from_options, seen_pose, turned
 from sim.image_model import ImageModel, perturb_camera
-from sim.motion import ImuModel, ImuSamples, Trajectory, bus_trajectory
+from sim.motion import DEFAULT_T0_NS, ImuModel, ImuSamples, Trajectory, bus_trajectory
 from sim.scene import rsu_camera, rsu_mounts
 from sim.studies import require_plotting
 from toptag.errors import InputError, SetupError, report
@@ -61,7 +67,7 @@ from toptag.fusion.outcomes import applied_count
 from toptag.geometry import rodrigues, wrap_angle
 from toptag.limits import BUS_MAX_SPEED_MPS
 from toptag.progress import Progress
-from toptag.units import NS_PER_MS, ns_from_ms, s_from_ns
+from toptag.units import NS_PER_MS, ns_from_ms, ns_from_s, s_from_ns
 
 DEFAULT_LATENCIES_MS = (0, 50, 100, 200, 300)
 ROUTES = ("left", "right", "straight", "stop")
@@ -114,11 +120,20 @@ class FixErrorModel:
         return C
 
 
+def draw_cameras(model: FixErrorModel, n_rsu: int, rng: np.random.Generator) -> dict[str, Camera]:
+    """Where each RSU's camera really stands: its surveyed pose off by one draw of its calibration error."""
+    im = ImageModel.ideal(calib_rot_sigma_deg=model.calib_rot_sigma_deg, calib_trans_sigma=model.calib_trans_sigma)
+    return {m.id: perturb_camera(rsu_camera(m.id.removeprefix("rsu-")), im, rng) for m in rsu_mounts()[:n_rsu]}
+
+
 def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.random.Generator,
-                   fix_source=None, faults: dict[str, RsuFault] | None = None) -> list[Fix]:
+                   fix_source=None, faults: dict[str, RsuFault] | None = None,
+                   cameras: dict[str, Camera] | None = None, t_offset_s: float = 0.0) -> list[Fix]:
     """Capture-stamped fixes from the first n_rsu corner RSUs (no arrival time yet). A fix is made at
     each frame's exposure time; `faults` shift its stamp (clock offset + capture latency) and turn
-    its pose (drift). The same rng draws are made with or without faults (common random numbers)."""
+    its pose (drift). The same rng draws are made with or without faults (common random numbers).
+    `cameras`: the cameras as they really stand (draw_cameras; default: drawn here, with a calibration
+    error); `t_offset_s`: the trajectory's start in the faults' time (a later pass)."""
     mounts = rsu_mounts()[:n_rsu]
     faults = faults or {}
     fixes = []
@@ -128,7 +143,9 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
         calibrated = model.calibrated and fix_source is None
         surveyed = rsu_camera(m.id.removeprefix("rsu-")) if fault.drift is not None or calibrated else None
         actual = surveyed
-        if calibrated:  # drawn first, so a run's faulted and fault-free fixes share it
+        if calibrated and cameras is not None:
+            actual = cameras[m.id]
+        elif calibrated:  # drawn first, so a run's faulted and fault-free fixes share it
             actual = perturb_camera(surveyed, ImageModel.ideal(calib_rot_sigma_deg=model.calib_rot_sigma_deg,
                                                                calib_trans_sigma=model.calib_trans_sigma), rng)
         bound = HEALTHY_CLOCK_BOUND_NS if fault.clock_disciplined else None
@@ -151,7 +168,7 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
                 seen = (st.x[i], st.y[i], st.yaw[i])
                 camera = actual
                 if fault.drift is not None:
-                    yaw, pitch = fault.drift.angles(float(t[i]))
+                    yaw, pitch = fault.drift.angles(float(t[i]) + t_offset_s)
                     camera = turned(actual, yaw, pitch)
                 if camera is not surveyed:
                     seen = seen_pose(surveyed, camera, *seen, BUS_ROOF_Z)
@@ -195,6 +212,13 @@ class RunInput:
     imu: ImuSamples
     fixes: list[Fix]  # fault-free
     faulted: list[Fix] | None  # the same frames with the faults (None without faults)
+    run: int = 0  # the run it is a pass of
+    pass_index: int = 0
+    run_t0_ns: int | None = None  # the run's start (its first pass's), None: this one's
+
+    @property
+    def start_ns(self) -> int:
+        return self.traj.t0_ns if self.run_t0_ns is None else self.run_t0_ns
 
     @property
     def t0_ns(self) -> int:
@@ -219,6 +243,7 @@ class RunTrace:
     flags: dict = field(default_factory=dict)  # rsu -> [s since start at which it was flagged]
     final: dict = field(default_factory=dict)  # rsu -> RsuAssessment at the end
     plain_counters: dict | None = None  # the plain filter's outcome counts (with per_source)
+    memory: dict | None = None  # what the fused filter's next pass starts from
 
 
 def _feed(filters, imu_rows, arrivals, out_every: int, t_out_ns: list, on_output=None):
@@ -298,13 +323,13 @@ def fix_arrivals(fixes: list[Fix], delays_ms: np.ndarray, faults: dict[str, RsuF
 
 def run_once(inp: RunInput, fixes: list[Fix], latency_ms: float, jitter_ms: float, rng: np.random.Generator,
              cfg: FilterConfig, dead: np.ndarray | None, faults: dict[str, RsuFault] | None = None,
-             plain: bool = False, out_hz: float = 50.0) -> RunTrace:
+             plain: bool = False, out_hz: float = 50.0, memory: dict | None = None) -> RunTrace:
     traj, imu = inp.traj, inp.imu
     faults = faults or {}
     delays = np.maximum(0.0, latency_ms + jitter_ms * rng.standard_normal(len(fixes)))
     arrivals = fix_arrivals(fixes, delays, faults)
     naive_arr = [(a, f.replace(t_ns=a)) for a, f in arrivals]
-    fused = BusFilter(cfg)
+    fused = BusFilter(cfg, memory=memory)
     naive = BusFilter(cfg.model_copy(update={"gate_probability": None, "time_offsets": False,
                                              "drift_detection": False}))
     filters, arr = [fused, naive], [arrivals, naive_arr]
@@ -320,7 +345,7 @@ def run_once(inp: RunInput, fixes: list[Fix], latency_ms: float, jitter_ms: floa
         arr.append([])
     rate = 1.0 / float(np.median(np.diff(imu.t)))
     every = max(1, int(round(rate / out_hz)))
-    trust = _TrustLog(fused, traj.t0_ns, max(1, int(round(rate / TRUST_HZ))))
+    trust = _TrustLog(fused, inp.start_ns, max(1, int(round(rate / TRUST_HZ))))
     t_out: list[int] = []
     outs = _feed(filters, imu.rows(), arr, every, t_out, trust)
     t = traj.seconds(np.array(t_out))
@@ -332,7 +357,7 @@ def run_once(inp: RunInput, fixes: list[Fix], latency_ms: float, jitter_ms: floa
     dx = _pose_array(outs[-1])[0] if dead is None else dead
     tt, offsets, stats = trust.series()
     return RunTrace(t, truth, fx, fc, nx, dx, fused.counters(), delays, px, tt, offsets, stats, trust.flags,
-                    fused.rsu_assessments(), filters[2].counters() if plain else None)
+                    fused.rsu_assessments(), filters[2].counters() if plain else None, fused.memory())
 
 
 def _errors(est: np.ndarray, truth: np.ndarray):
@@ -350,9 +375,15 @@ def _rms(v):
     return float(np.sqrt(np.mean(v * v))) if len(v) else float("nan")
 
 
-def _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, faults) -> list[RunInput]:
-    """Each run's route (cycling through `routes`), IMU and fixes (with and without faults, same noise)."""
+def _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, faults, passes: int = 1,
+            gap_s: float = 60.0) -> list[RunInput]:
+    """Each run's route (cycling through `routes`), IMU and fixes (with and without faults, same noise);
+    with passes > 1, each run's passes in turn."""
     ss = np.random.SeedSequence(seed)
+    if passes > 1:
+        return [p for r, s in enumerate(ss.spawn(runs))
+                for p in _passes(r, s, routes, speed, seed, imu_model, fix_model, n_rsu, fix_source, faults, passes,
+                                 gap_s)]
     out = []
     for r, s in enumerate(ss.spawn(runs)):
         traj = bus_trajectory(routes[r % len(routes)], "w", speed=speed, seed=seed)
@@ -368,11 +399,35 @@ def _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, 
     return out
 
 
+def _passes(r, s, routes, speed, seed, imu_model, fix_model, n_rsu, fix_source, faults, passes, gap_s) -> list[RunInput]:
+    """One run of `passes` passes: the same cameras, one route after another, gap_s apart."""
+    g_cam, *gens = [np.random.default_rng(x) for x in s.spawn(1 + 2 * passes)]
+    cameras = draw_cameras(fix_model, n_rsu, g_cam) if fix_model.calibrated else None
+    out, t0 = [], None
+    for p in range(passes):
+        g_imu, g_fix = gens[2 * p], gens[2 * p + 1]
+        start = DEFAULT_T0_NS if t0 is None else t0
+        traj = bus_trajectory(routes[(r + p) % len(routes)], "w", speed=speed, seed=seed, t0_ns=start)
+        imu = imu_model.synthesize(traj, 0.0, traj.duration, g_imu)
+        offset = s_from_ns(traj.t0_ns - DEFAULT_T0_NS)
+        state = g_fix.bit_generator.state
+        fixes = simulate_fixes(traj, fix_model, n_rsu, g_fix, fix_source, cameras=cameras, t_offset_s=offset)
+        faulted = None
+        if faults:
+            g_fix.bit_generator.state = state
+            faulted = simulate_fixes(traj, fix_model, n_rsu, g_fix, fix_source, faults, cameras=cameras,
+                                     t_offset_s=offset)
+        out.append(RunInput(traj, imu, fixes, faulted, r, p, DEFAULT_T0_NS))
+        t0 = traj.t0_ns + ns_from_s(traj.duration + gap_s)
+    return out
+
+
 def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, seed: int = 0, runs: int = 16,
         n_rsu: int = 4, route: str = "left", speed: float = BUS_MAX_SPEED_MPS, settle_s: float = 1.5,
         imu_model: ImuModel | None = None, fix_model: FixErrorModel | None = None,
         config: FilterConfig | None = None, fix_source=None, plots: bool = True, log=print,
-        progress: bool = True, faults: dict[str, RsuFault] | None = None) -> dict:
+        progress: bool = True, faults: dict[str, RsuFault] | None = None, passes: int = 1,
+        pass_gap_s: float = 60.0) -> dict:
     """The study. Returns the results dict also written to out_dir/results.json. `route`: one of
     ROUTES, or several separated by commas (the runs drive them in turn). `plots`: True, False, or
     "trust" (only the offset and drift figures of the faulted case)."""
@@ -389,19 +444,21 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
     if unknown:
         raise InputError(f"faults name RSUs the study does not have: {', '.join(unknown)} (RSUs: {', '.join(rsus)})")
     latencies = [float(l) for l in latencies_ms]
-    inputs = _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, faults)
+    inputs = _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, faults, passes, pass_gap_s)
     cases = [("fault_free", False)] + ([("faulted", True)] if faults else [])
     per_case: dict[str, dict[float, list[RunTrace]]] = {c: {l: [] for l in latencies} for c, _ in cases}
-    dead_cache: list[np.ndarray | None] = [None] * runs
+    dead_cache: list[np.ndarray | None] = [None] * len(inputs)
     results: dict = {"latency_ms": {}}
-    bar = Progress(len(latencies) * runs * len(cases), "toptag eval fusion") if progress else None
+    bar = Progress(len(latencies) * len(inputs) * len(cases), "toptag eval fusion") if progress else None
     for lat in latencies:
         t0 = time.perf_counter()
         for name, faulted in cases:
+            memory = None
             for r, inp in enumerate(inputs):
                 rng = np.random.default_rng([seed, r, int(lat * 1000)])  # same delays in both cases
                 tr = run_once(inp, inp.faulted if faulted else inp.fixes, lat, jitter_ms, rng, cfg, dead_cache[r],
-                              faults if faulted else None, plain=faulted)
+                              faults if faulted else None, plain=faulted, memory=memory if inp.pass_index else None)
+                memory = tr.memory
                 dead_cache[r] = tr.dead
                 per_case[name][lat].append(tr)
                 if bar:
@@ -445,7 +502,7 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
         "routes": routes, "route": routes[0], "speed_mps": speed, "durations_s": [inp.traj.duration for inp in inputs],
         "duration_s": inputs[0].traj.duration, "data_s_per_latency": data_s, "runs": runs, "seed": seed,
         "jitter_ms": jitter_ms, "delay_model": "max(0, latency + N(0, jitter))", "n_rsu": n_rsu, "rsus": rsus,
-        "settle_s": settle_s, "output_hz": 50,
+        "settle_s": settle_s, "output_hz": 50, "passes_per_run": passes, "pass_gap_s": pass_gap_s,
         "fix_model": "live (fix_source)" if fix_source else asdict(fix_model), "imu_model": asdict(imu_model),
         "healthy_clock_bound_ns": HEALTHY_CLOCK_BOUND_NS, "faults": describe(faults),
         "filter": cfg.model_dump(),
@@ -538,7 +595,8 @@ def _summarise(traces: list[RunTrace], inputs: list[RunInput], settle_s: float, 
     }
     if ppos:
         out["plain_pos_rms_m"] = _rms(np.concatenate(ppos))
-    out.update(_trust_summary(traces, inputs, faults))
+    hours = sum(inp.traj.duration for inp in inputs) / 3600.0
+    out.update(_trust_summary(*_by_run(traces, inputs), faults, hours))
     return out
 
 
@@ -546,13 +604,54 @@ def _in_view_s(inp: RunInput, rsu: str, after_s: float) -> float | None:
     """First exposure time (s) >= after_s of a fix of `rsu` (the bus in its view), None if none."""
     for f in inp.fixes:
         if f.source == rsu:
-            t = s_from_ns(f.t_ns - inp.t0_ns)
+            t = s_from_ns(f.t_ns - inp.start_ns)
             if t >= after_s:
                 return t
     return None
 
 
-def _trust_summary(traces: list[RunTrace], inputs: list[RunInput], faults: dict[str, RsuFault]) -> dict:
+def _by_run(traces: list[RunTrace], inputs: list[RunInput]) -> tuple[list[RunTrace], list[RunInput]]:
+    """The passes of each run as one trace and input, for the RSU figures: flags (times from the run's
+    start; a flag carried into the next pass counted once), fix counts added up, the last pass's
+    assessments, every pass's fixes."""
+    if all(inp.run_t0_ns is None for inp in inputs):
+        return traces, inputs
+    runs: dict[int, list[tuple[RunTrace, RunInput]]] = {}
+    for tr, inp in zip(traces, inputs):
+        runs.setdefault(inp.run, []).append((tr, inp))
+    out_t, out_i = [], []
+    for passes in runs.values():
+        flags: dict[str, list[float]] = {}
+        for tr, _ in passes:
+            for rsu, times in tr.flags.items():
+                flags[rsu] = sorted(set(flags.get(rsu, [])) | set(times))
+        last, first = passes[-1][0], passes[0][1]
+        out_t.append(RunTrace(last.t, last.truth, last.fused, last.fused_cov, last.naive, last.dead,
+                              _add_counters([tr.counters for tr, _ in passes]), last.delays_ms, last.plain,
+                              flags=flags, final=last.final,
+                              plain_counters=None if last.plain_counters is None else
+                              _add_counters([tr.plain_counters for tr, _ in passes])))
+        out_i.append(RunInput(first.traj, first.imu, [f for _, inp in passes for f in inp.fixes], None, first.run, 0,
+                              first.start_ns))
+    return out_t, out_i
+
+
+def _add_counters(counters: list[dict]) -> dict:
+    """Fix outcome counts of several filters, per source too."""
+    out: dict = {"per_source": {}}
+    for c in counters:
+        for k, v in c.items():
+            if isinstance(v, int):
+                out[k] = out.get(k, 0) + v
+        for src, d in c.get("per_source", {}).items():
+            mine = out["per_source"].setdefault(src, {})
+            for k, v in d.items():
+                mine[k] = mine.get(k, 0) + v
+    return out
+
+
+def _trust_summary(traces: list[RunTrace], inputs: list[RunInput], faults: dict[str, RsuFault],
+                   hours: float | None = None) -> dict:
     """Per RSU: the final offset estimates against the injected offset, drift flags and when they came,
     false flags (RSUs flagged without an injected drift)."""
     rsus = sorted({r for tr in traces for r in tr.final} | set(faults))
@@ -599,7 +698,8 @@ def _trust_summary(traces: list[RunTrace], inputs: list[RunInput], faults: dict[
         used[rsu] = {"fused": _applied_fraction([tr.counters for tr in traces], rsu)}
         if traces and traces[0].plain_counters is not None:
             used[rsu]["plain"] = _applied_fraction([tr.plain_counters for tr in traces], rsu)
-    hours = sum(inp.traj.duration for inp in inputs) / 3600.0
+    if hours is None:
+        hours = sum(inp.traj.duration for inp in inputs) / 3600.0
     return {"offset_estimate_ms": offsets, "drift_flagged": flagged, "fixes_applied_fraction": used,
             "false_flags": false_flags,
             "false_flag_runs": false_flag_runs, "false_flags_per_hour": false_flags / hours if hours else None,
@@ -664,6 +764,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calib-as-noise", action="store_true",
                    help="the drift detector counts a fix's calibration share as noise, as it did before weighing it "
                         "as each RSU's constant bias (for comparison)")
+    p.add_argument("--calib-bias", choices=("estimate", "consider", "noise"), default=None,
+                   help="how the bus filter takes a fix's calibration share: a bias state per RSU (estimate), "
+                        "carried but not updated (consider), or white noise (noise, as before); default: the filter's")
+    p.add_argument("--calib-bias-corr-m", type=float, default=None, metavar="M",
+                   help="distance over which the filter lets an RSU's calibration bias decorrelate; default: the filter's")
+    p.add_argument("--passes", type=int, default=1, metavar="N",
+                   help="passes per run: the same bus and cameras, each pass's filter starting from what the last "
+                        "learnt (the drift detector's change test needs earlier passes); default 1")
+    p.add_argument("--pass-gap-s", type=float, default=60.0, metavar="S", help="time between passes (default 60)")
     p.add_argument("--fixes", default="study", choices=("study", "live"),
                    help="fix error model: the study's (default) or the live pipeline")
     p.add_argument("--plots", choices=("all", "trust", "none"), default="all",
@@ -696,12 +805,17 @@ def main(argv: list[str] | None = None) -> int:
         faults = faults_from_options(a.clock_offset_ms, a.capture_latency_ms, a.drift_deg)
         if a.calib_deg < 0 or a.calib_cm < 0:
             raise InputError("--calib-deg and --calib-cm must be >= 0")
+        opts = {"flagged_policy": a.flagged, "calib_bias": a.calib_bias, "calib_bias_corr_m": a.calib_bias_corr_m}
         cfg = FilterConfig(**STUDY_DRIFT_THRESHOLDS, drift_calibration_is_bias=not a.calib_as_noise,
-                           **({} if a.flagged is None else {"flagged_policy": a.flagged}))
+                           **{k: v for k, v in opts.items() if v is not None})
         fix_model = FixErrorModel(calib_rot_sigma_deg=a.calib_deg, calib_trans_sigma=a.calib_cm / 100)
+        if a.passes < 1 or a.pass_gap_s < 0:
+            raise InputError("--passes must be >= 1 and --pass-gap-s >= 0")
         plots = False if a.no_plots or a.plots == "none" else ("trust" if a.plots == "trust" and faults else True)
+        if a.passes > 1:
+            plots = False  # the figures draw one pass per run
         res = run(a.out, lats, a.jitter_ms, a.seed, runs=a.runs, n_rsu=a.rsus, route=a.route, plots=plots,
-                  faults=faults, config=cfg, fix_model=fix_model)
+                  faults=faults, config=cfg, fix_model=fix_model, passes=a.passes, pass_gap_s=a.pass_gap_s)
     except InputError as e:
         return report("eval fusion", e)
     print()

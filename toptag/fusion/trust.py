@@ -102,6 +102,12 @@ class RsuRecord(NamedTuple):
     current: tuple | None = None
     # Deviations of earlier passes, added up (information form: sum C^-1, sum C^-1 d, fixes, time).
     past: tuple | None = None
+    # Its long-run deviation from the others (the same form, fading over DriftRule.baseline_window_s): what
+    # the change test compares this pass's deviation with. Its constant bias is in both and cancels.
+    baseline: tuple | None = None
+    flagged_by: str | None = None  # "others" (its deviation from them) or "change" (from its own long run)
+    change: np.ndarray | None = None  # this pass's deviation minus the long-run one, at its last decision
+    change_stat: float = 0.0  # its chi-square
 
     @property
     def flagged(self) -> bool:
@@ -116,10 +122,10 @@ class RsuRecord(NamedTuple):
     def restart(self, keep_past: bool = True) -> RsuRecord:
         """The record without its innovations (its flag, clock and offsets kept; a flagged RSU keeps the
         disagreement it was flagged for, which down-weights its fixes until new evidence decides).
-        keep_past=False: the earlier passes' deviations go too."""
-        past = self.past if keep_past else None
+        keep_past=False: the earlier passes' deviations go too, and the long-run one."""
+        past, baseline = (self.past, self.baseline) if keep_past else (None, None)
         rec = self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None, Bs=None,
-                            current=None, past=past)
+                            current=None, past=past, baseline=baseline, change=None, change_stat=0.0)
         return rec if self.flagged else rec._replace(deviation=None, deviation_stat=0.0, others_mean=None)
 
     def disagreement(self) -> np.ndarray:
@@ -145,6 +151,15 @@ def _add_past(past: tuple | None, current: tuple, t_ns: int, window_s: float) ->
     return decay * past[0] + I, decay * past[1] + I @ d, decay * past[2] + float(n), int(t_ns)
 
 
+def _mean(info: tuple) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(d, C, n) of deviations added up in information form, None if singular."""
+    try:
+        C = np.linalg.inv(info[0])
+    except np.linalg.LinAlgError:
+        return None
+    return C @ info[1], C, info[2]
+
+
 def _chi2(d: np.ndarray, C: np.ndarray) -> float:
     try:
         return float(d @ np.linalg.solve(C, d))
@@ -168,6 +183,9 @@ class DriftRule:
     bias_floor: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # a healthy RSU's bias, beyond calibration
     min_other_fixes: float | None = None  # effective fixes another RSU needs to be compared with (None: min_fixes)
     past_window_s: float = 0.0  # earlier passes' deviations fade with this time constant (0: not kept)
+    baseline_window_s: float = 0.0  # the long-run deviation fades with this (0: no change test)
+    change_bias_share: float = 0.5  # how much of the bias may differ between the baseline's views and this pass
+    change_stat: float = math.inf  # the change test's chi-square quantile (its own false-alarm rate)
 
     def accumulate(self, rec: RsuRecord, t_ns: int, nu: np.ndarray, S: np.ndarray,
                    B: np.ndarray | None = None) -> RsuRecord:
@@ -192,10 +210,13 @@ class DriftRule:
     def carry(self, rec: RsuRecord) -> RsuRecord:
         """The record with its deviation from the others in this filter added to the earlier passes'
         (faded by the time since), for the bus's next filter (its innovations go: see restart)."""
-        past = rec.past
-        if self.past_window_s > 0 and not rec.flagged and rec.current is not None:
-            past = _add_past(past, rec.current, rec.last_t, self.past_window_s)
-        return rec._replace(past=past).restart()
+        past, baseline = rec.past, rec.baseline
+        if not rec.flagged and rec.current is not None:
+            if self.past_window_s > 0:
+                past = _add_past(past, rec.current, rec.last_t, self.past_window_s)
+            if self.baseline_window_s > 0:
+                baseline = _add_past(baseline, rec.current, rec.last_t, self.baseline_window_s)
+        return rec._replace(past=past, baseline=baseline).restart()
 
     def bias_cov(self, rec: RsuRecord) -> np.ndarray:
         """The covariance of an RSU's constant bias: its fixes' calibration share (weighted mean over
@@ -234,6 +255,21 @@ class DriftRule:
                 d = Cn @ Id
         return d, _chi2(d, Cn + Cb), mo, n, current
 
+    def _change(self, rec: RsuRecord, current: tuple, others: list[RsuRecord], t_ns: int) -> tuple | None:
+        """(Delta, T_c): this pass's deviation from the others minus its long-run one, and its chi-square
+        against their noise and the part of the biases that may differ between where the bus was seen
+        then and now (change_bias_share: a camera's error moves a fix differently across its view); the
+        constant bias itself cancels. None without a long-run deviation of at least min_fixes fixes."""
+        if rec.baseline is None or self.baseline_window_s <= 0:
+            return None
+        base = _mean(rec.baseline)
+        if base is None or base[2] < self.min_fixes:
+            return None
+        k = len(others)
+        Cb = self.bias_cov(rec) + sum(self.bias_cov(o) for o in others) / (k * k)
+        delta = current[0] - base[0]
+        return delta, _chi2(delta, current[1] + base[1] + self.change_bias_share ** 2 * Cb)
+
     def decide(self, records: dict[str, RsuRecord], rsu: str, t_ns: int,
                offset_sigma_s: float = 0.0) -> RsuRecord:
         """The record of `rsu` (just updated at t_ns) with its deviation from the others and its flag
@@ -246,22 +282,48 @@ class DriftRule:
                   and o.n_eff >= need}
         if len(others) < self.min_others or rec.m is None:
             return rec  # nobody to compare with: the flag stays as it is
-        if rec.flagged:  # cleared on this filter's evidence alone (a recalibrated camera)
-            d, T_d, mo, n, current = self._deviation(rec._replace(past=None), list(others.values()), t_ns)
+        rest = list(others.values())
+        if rec.flagged:  # cleared on this filter's evidence alone (a recalibrated camera, a camera turned back)
+            d, T_d, mo, n, current = self._deviation(rec._replace(past=None), rest, t_ns)
             rec = rec._replace(deviation=d, deviation_stat=T_d, others_mean=mo, current=current)
-            if T_d < self.clear_stat and n >= self.min_fixes:
-                return rec._replace(flagged_since=None)
+            change = self._change(rec, current, rest, t_ns) if rec.flagged_by == "change" else None
+            if change is not None:
+                rec = rec._replace(change=change[0], change_stat=change[1])
+            calm = (change[1] if change is not None else T_d) < self.clear_stat
+            if calm and n >= self.min_fixes:
+                return rec._replace(flagged_since=None, flagged_by=None)
             return rec
-        d, T_d, mo, n, current = self._deviation(rec, list(others.values()), t_ns)
+        d, T_d, mo, n, current = self._deviation(rec, rest, t_ns)
         rec = rec._replace(deviation=d, deviation_stat=T_d, others_mean=mo, current=current)
-        if T_d <= self.flag_stat or n < self.min_fixes or offset_sigma_s > self.max_offset_sigma_s \
-                or not self._large(d):
+        change = self._change(rec, current, rest, t_ns)
+        if change is not None:
+            rec = rec._replace(change=change[0], change_stat=change[1])
+        if offset_sigma_s > self.max_offset_sigma_s:
             return rec
-        for k, o in others.items():  # do the others agree among themselves (without this RSU)?
+        if T_d > self.flag_stat and n >= self.min_fixes and self._large(d) and self._isolated(others, T_d, t_ns):
+            return rec._replace(flagged_since=t_ns, flagged_by="others", past=None)
+        if change is not None and change[1] > self.change_stat and current[2] >= self.min_fixes \
+                and self._large(change[0]) and self._isolated(others, change[1], t_ns, records):
+            return rec._replace(flagged_since=t_ns, flagged_by="change", past=None)
+        return rec
+
+    def _isolated(self, others: dict[str, RsuRecord], stat: float, t_ns: int,
+                  records: dict[str, RsuRecord] | None = None) -> bool:
+        """Do the others agree among themselves (without the RSU under test)? Each one's deviation from
+        the rest has a chi-square at most 1 / isolation_ratio of `stat`; with `records` (the change test),
+        each one's change from its own long run too (the RSU that turned moves the others' deviations by a
+        share of its turn only)."""
+        for k, o in others.items():
             rest = [x for j, x in others.items() if j != k]
-            if rest and self.isolation_ratio * self._deviation(o, rest, t_ns)[1] > T_d:
-                return rec
-        return rec._replace(flagged_since=t_ns, past=None)
+            if rest and self.isolation_ratio * self._deviation(o, rest, t_ns)[1] > stat:
+                return False
+            if records is not None:
+                everyone = [x for j, x in records.items() if j != k and x.m is not None and not x.flagged]
+                if everyone and o.current is not None:
+                    c = self._change(o, o.current, everyone, t_ns)
+                    if c is not None and self.isolation_ratio * c[1] > stat:
+                        return False
+        return True
 
 
 @dataclass(frozen=True)
@@ -279,6 +341,9 @@ class RsuAssessment:
     last_fix_ns: int
     fixes: dict[str, int] = field(default_factory=dict)  # outcome -> count (final decisions)
     policy: str = "downweight"
+    # "others": it disagrees with the other RSUs beyond its calibration; "change": its fixes moved against
+    # the others' since its earlier passes (disagreement and statistic are then that move's)
+    flagged_by: str | None = None
 
     @property
     def disagreement_m(self) -> float:
@@ -290,8 +355,12 @@ class RsuAssessment:
         if not self.flagged:
             return None
         what = "refused" if self.policy == "refuse" else "down-weighted"
-        return (f"camera {self.rsu} disagrees with the other RSUs and the fused track by "
-                f"{100 * self.disagreement_m:.1f} cm / {math.degrees(abs(self.disagreement[2])):.2f} deg: its fixes "
+        size = f"{100 * self.disagreement_m:.1f} cm / {math.degrees(abs(self.disagreement[2])):.2f} deg"
+        if self.flagged_by == "change":
+            return (f"camera {self.rsu} has moved: its fixes shifted by {size} against the other RSUs' since its "
+                    f"earlier passes (turned, or its pole moved); its fixes are {what}; check its calibration: "
+                    f"{CALIBRATE_CHECK}")
+        return (f"camera {self.rsu} disagrees with the other RSUs and the fused track by {size}: its fixes "
                 f"are {what}; check its calibration: {CALIBRATE_CHECK}")
 
 
