@@ -188,9 +188,9 @@ class FilterConfig(BaseModel):
     # The change test (toptag.fusion.trust): each RSU's deviation from the others over the bus's passes,
     # fading over this time constant (0: no change test), against which this pass's is compared (its
     # constant bias cancels); and the share of its bias that may differ between where the bus was seen
-    # in those passes and in this one. Off by default: the live RSU pipeline's fixes spread 2-4 x their
-    # reported sigma in yaw (toptag eval livefix), which would make healthy cameras "change" from pass to
-    # pass; the fusion study, whose covariances are honest, turns it on (a day).
+    # in those passes and in this one. Off by default until it is tried on live fixes over many passes (a
+    # live RSU's own bias changes across its view too, and the test weighs only the stated calibration
+    # and the floor above); the fusion study, whose fixes follow their covariances, turns it on (a day).
     drift_baseline_window_s: float = Field(default=0.0, ge=0)
     drift_change_bias_share: float = Field(default=0.5, ge=0)
     drift_change_false_alarm: float = Field(default=1e-4, gt=0, lt=0.5)  # per test, chi-square 3 dof
