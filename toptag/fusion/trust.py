@@ -55,6 +55,15 @@ carry over to the next filter of the same bus is each RSU's deviation from the o
 covariance, `RsuRecord.past`): the filter's error cancels in it, so it can be added up over passes
 (forgetting over `past_window_s`) when a busy machine delivers too few fixes in one pass to decide.
 It is dropped with everything else when another RSU is flagged (it was measured against that one).
+
+The change test (`baseline_window_s` > 0). The same deviations, added up over a long time (a day), are
+an RSU's long-run deviation from the others; its constant bias is in it as in this pass's, and cancels
+in their difference Delta = d_now - d_long. A turn within what the calibration allows (not flagged by the
+test above, which must allow the whole bias) is still a change: T_c = Delta' (C_now + C_long +
+change_bias_share² B)^-1 Delta, the last term for how differently a camera's error moves fixes in other
+parts of its view. It flags (`flagged_by` "change") at its own false-alarm quantile, with the same
+conditions as above, and clears when T_c falls back. The first pass has no long run: the test above
+alone decides there.
 While an RSU is flagged its fixes are down-weighted (covariance scaled and d d' added) or refused
 (`FilterConfig.flagged_policy`); the filter, if it was following it, widens its pose by the others'
 mean disagreement so that they can pull it back, and the others' evidence, gathered against that
@@ -185,7 +194,7 @@ class DriftRule:
     past_window_s: float = 0.0  # earlier passes' deviations fade with this time constant (0: not kept)
     baseline_window_s: float = 0.0  # the long-run deviation fades with this (0: no change test)
     change_bias_share: float = 0.5  # how much of the bias may differ between the baseline's views and this pass
-    change_stat: float = math.inf  # the change test's chi-square quantile (its own false-alarm rate)
+    change_flag_stat: float = math.inf  # the change test's chi-square quantile (its own false-alarm rate)
 
     def accumulate(self, rec: RsuRecord, t_ns: int, nu: np.ndarray, S: np.ndarray,
                    B: np.ndarray | None = None) -> RsuRecord:
@@ -302,7 +311,7 @@ class DriftRule:
             return rec
         if T_d > self.flag_stat and n >= self.min_fixes and self._large(d) and self._isolated(others, T_d, t_ns):
             return rec._replace(flagged_since=t_ns, flagged_by="others", past=None)
-        if change is not None and change[1] > self.change_stat and current[2] >= self.min_fixes \
+        if change is not None and change[1] > self.change_flag_stat and current[2] >= self.min_fixes \
                 and self._large(change[0]) and self._isolated(others, change[1], t_ns, records):
             return rec._replace(flagged_since=t_ns, flagged_by="change", past=None)
         return rec
