@@ -6,7 +6,9 @@ Prints and writes (--out, JSON) what says whether the demo keeps real time on th
 - per RSU: frames that reached it and those it skipped because it was busy (count and fraction), those
   that never reached it (ticks the simulator skipped for running late: gaps in the frame numbers), and
   where its time went: frames and mean processing ms per kind of work (acquisition, tracking, nothing);
-- fix latency (capture to arrival at the monitor) p50 / p99 over every bus's fixes;
+- fix latency (capture to arrival at the monitor) p50 / p99 over every bus's fixes, and by what the RSU
+  did for that bus in that frame (tracked, hinted, acquired) with its parts: capture to the start of
+  the RSU's processing (camera, transport, waiting), processing, transit;
 - the fraction of fused samples with status "ok" while a bus is in session (its Approach to its Leave).
 The figures depend on the machine and its load: quote `nproc`, the CPU model and what else ran.
 """
@@ -57,6 +59,7 @@ def figures(report: dict) -> dict:
             "rsus": rsus,
             "fix_latency_ms": {"p50": totals.get("latency_ms_p50"), "p99": totals.get("latency_ms_p99"),
                                "fixes": totals.get("fixes_received")},
+            "fix_latency_by_mode": totals.get("latency_by_mode", {}),
             "fused_ok_in_session": {"fraction": totals.get("fused_in_session_ok_fraction"),
                                     "samples": totals.get("fused_in_session_samples")},
             "buses": buses,
@@ -82,6 +85,11 @@ def table(f: dict) -> str:
                                  for k, v in r["processing_ms_by_kind"].items()))
     lat = f["fix_latency_ms"]
     lines.append(f"fix latency p50 {_fmt(lat['p50'])} ms, p99 {_fmt(lat['p99'])} ms over {lat['fixes']} fixes")
+    for mode, m in f.get("fix_latency_by_mode", {}).items():
+        lines.append(f"  {mode:10s} {m['fixes']:5d} fixes p50 / p99 {m['p50']:.0f} / {m['p99']:.0f} ms: capture to "
+                     f"processing {m['before_processing'][0]:.0f} / {m['before_processing'][1]:.0f}, processing "
+                     f"{m['processing'][0]:.0f} / {m['processing'][1]:.0f}, transit {m['transit'][0]:.0f} / "
+                     f"{m['transit'][1]:.0f}")
     ok = f["fused_ok_in_session"]
     lines.append(f"fused status ok while in session: {_fmt(None if ok['fraction'] is None else 100 * ok['fraction'])} %"
                  f" of {ok['samples']} samples")

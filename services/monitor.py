@@ -134,6 +134,11 @@ class Monitor:
         self.diagnoses: dict[tuple[str, str], RsuDiagnosis] = {}  # (rsu, bus) -> latest
         self.flags: dict[tuple[str, str], int] = {}  # (rsu, bus) -> flagged since (ns), as first reported
         self.all_latency_ms = ErrorStats()  # every bus's fixes together
+        # Where each fix's latency went, by what its RSU did for that bus in that frame (tracked, hinted,
+        # acquired: TagDetections.modes): (rsu, frame seq, bus, ms from capture to arrival, to the start
+        # of the RSU's processing, processing, transit), joined with the frames' modes in summary().
+        self._fix_parts: deque = deque(maxlen=20000)
+        self._modes: dict[tuple[str, int], dict[str, str]] = {}
         # rsu -> frame kind -> [frames, processing ms]: where an RSU's time goes (frame_kind)
         self.work: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(lambda: [0, 0.0]))
         self._subs = [
@@ -184,6 +189,9 @@ class Monitor:
             acc = self.work[m.rsu_id][frame_kind(m.modes)]
             acc[0] += 1
             acc[1] += ms_from_ns(m.processing_ns)
+            self._modes[(m.rsu_id, m.frame_seq)] = m.modes
+            if len(self._modes) > 20000:
+                del self._modes[next(iter(self._modes))]
 
     def _on_truth(self, m: GroundTruth) -> None:
         with self._lock:
@@ -204,6 +212,9 @@ class Monitor:
             b.fix_transit_ms.add(ms_from_ns(arrival - m.publish_time_ns))
             if m.processing_ns is not None:
                 b.processing_ms.add(ms_from_ns(m.processing_ns))
+                self._fix_parts.append((m.rsu_id, m.frame_seq, m.bus_id, latency_ms,
+                                        ms_from_ns(m.publish_time_ns - m.capture_time_ns - m.processing_ns),
+                                        ms_from_ns(m.processing_ns), ms_from_ns(arrival - m.publish_time_ns)))
             b.pending_fixes.append((m.capture_time_ns, m.x, m.y))
 
     def _on_fused(self, m: FusedPose) -> None:
@@ -311,11 +322,28 @@ class Monitor:
             n_session = sum(b.session_fused for b in self.buses.values())
             totals = {"latency_ms_p50": self.all_latency_ms.pct(50), "latency_ms_p99": self.all_latency_ms.pct(99),
                       "fixes_received": self.all_latency_ms.n,
+                      "latency_by_mode": self._latency_by_mode(),
                       "fused_in_session_samples": n_session,
                       "fused_in_session_ok_fraction": (sum(b.session_fused_ok for b in self.buses.values())
                                                        / n_session if n_session else None)}
         return {"elapsed_s": round(time.monotonic() - self.started, 1), "rsus": rsus, "buses": buses,
                 "all_buses": totals, "rejected_messages": self.counters.get("rejected")}
+
+    def _latency_by_mode(self) -> dict:
+        """Fix latency p50 / p99 (ms) by what the RSU did for the bus in that frame, each with the p50 / p99
+        of its parts: capture to the start of the RSU's processing (the camera, the frame's transport, the
+        wait for the RSU), the processing up to the fix, the fix's transit here."""
+        by: dict[str, list] = defaultdict(list)
+        for rsu, seq, bus, *ms in self._fix_parts:
+            by[self._modes.get((rsu, seq), {}).get(bus, "unknown")].append(ms)
+        out = {}
+        for mode, rows in sorted(by.items()):
+            a = np.asarray(rows)
+            pct = {q: np.round(np.percentile(a, q, axis=0), 1) for q in (50, 99)}
+            out[mode] = {"fixes": len(rows), "p50": float(pct[50][0]), "p99": float(pct[99][0]),
+                         **{part: [float(pct[50][i]), float(pct[99][i])]
+                            for i, part in enumerate(("before_processing", "processing", "transit"), 1)}}
+        return out
 
     def _trust(self, rsu: str) -> dict:
         """What the buses think of one RSU: time offsets (per bus), drift flags, the advice."""

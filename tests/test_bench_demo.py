@@ -37,6 +37,13 @@ def test_bench_demo_prints_and_writes_every_figure(tmp_path):
     lat = f["fix_latency_ms"]
     if lat["fixes"]:
         assert 0 < lat["p50"] <= lat["p99"]
+    # every fix's latency, split by what its RSU did for that bus in that frame, and into its parts
+    by_mode = f["fix_latency_by_mode"]
+    assert set(by_mode) <= {"tracked", "hinted", "acquired", "unknown"}, by_mode
+    assert sum(m["fixes"] for m in by_mode.values()) <= lat["fixes"]
+    for m in by_mode.values():
+        assert m["fixes"] > 0 and m["p50"] <= m["p99"]
+        assert all(0 <= m[part][0] <= m[part][1] for part in ("processing", "transit")), m
     ok = f["fused_ok_in_session"]
     assert ok["fraction"] is None or 0 <= ok["fraction"] <= 1
     assert all(code == 0 for code in f["exit_codes"].values()), f["exit_codes"]
@@ -49,6 +56,9 @@ def test_figures_from_a_demo_report():
               "buses": {"bus-42": {"fixes_received": 50, "latency_ms_p50": 40.0, "latency_ms_p99": 90.0,
                                    "fused_in_session_samples": 200, "fused_in_session_ok_fraction": 0.9}},
               "all_buses": {"latency_ms_p50": 40.0, "latency_ms_p99": 90.0, "fixes_received": 50,
+                            "latency_by_mode": {"tracked": {"fixes": 45, "p50": 38.0, "p99": 70.0,
+                                                            "before_processing": [20.0, 40.0],
+                                                            "processing": [8.0, 25.0], "transit": [1.0, 3.0]}},
                             "fused_in_session_samples": 200, "fused_in_session_ok_fraction": 0.9},
               "cpu": {"window_s": 10.0, "cores": 0.5, "total_s": 5.0, "seconds": {"sim": 3.0, "rsu-sw": 2.0}},
               "exit_codes": {"sim": 0}}
@@ -58,4 +68,5 @@ def test_figures_from_a_demo_report():
     assert f["fix_latency_ms"] == {"p50": 40.0, "p99": 90.0, "fixes": 50}
     assert f["fused_ok_in_session"] == {"fraction": 0.9, "samples": 200}
     text = table(f)
+    assert "tracked       45 fixes p50 / p99 38 / 70 ms: capture to processing 20 / 40, processing 8 / 25" in text
     assert "10.0 %" in text and "missing   25 (20.0 %)" in text and "0.50 cores" in text and "90.0 %" in text
