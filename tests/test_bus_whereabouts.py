@@ -182,8 +182,8 @@ def test_a_bus_entering_the_view_is_acquired_as_soon_as_without_its_whereabouts(
 
 
 def test_a_gnss_report_is_trusted_no_better_than_the_floor(bus_pass):
-    """A satellite fix 11 m off that claims 1 m (multipath near buildings): at its stated sigma it rules
-    out the part of the image where the bus is; with the RSU's floor on a GNSS sigma (3 x 4 m) the bus is
+    """A satellite fix 11 m off that claims 0.3 m (multipath near buildings): at its stated sigma it rules
+    out the part of the image where the bus is; with the RSU's floor on a GNSS sigma (3 x 2 m) the bus is
     searched for there and found. A fused pose (an RSU-fixed filter's) keeps its own sigma."""
     camera, bus, frames = bus_pass
     shown = [i for i, f in enumerate(frames) if f[3]]
@@ -191,9 +191,9 @@ def test_a_gnss_report_is_trusted_no_better_than_the_floor(bus_pass):
     off = np.asarray(truth[:2]) + 11.0 * np.array([-1.0, 1.0]) / np.sqrt(2)  # off toward the view's edge
     found = {}
     for source in ("fused", "gnss"):
-        c = CoarsePosition(t_ns=t_ns, x=float(off[0]), y=float(off[1]), sigma_m=1.0, source=source)
+        c = CoarsePosition(t_ns=t_ns, x=float(off[0]), y=float(off[1]), sigma_m=0.3, source=source)
         r = reported_position(c)
-        assert r.sigma_m == (GNSS_SIGMA_FLOOR_M if source == "gnss" else 1.0)
+        assert r.sigma_m == (GNSS_SIGMA_FLOOR_M if source == "gnss" else 0.3)
         p = RsuPipeline(camera)
         p.add_vehicle(bus)
         p.report_position(bus.id, r)
