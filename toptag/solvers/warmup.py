@@ -1,10 +1,10 @@
 """`warm_up`: compile the solvers' numba kernels (toptag/solvers/kernels.py), or load them from numba's
 on-disk cache, before the first frame needs them.
 
-A process that solves without a cache compiles every kernel on its first solve: seconds of CPU (measured
-in /work/notes/issue-14-solver2.md). The project's setup (`make setup`), the test session and the
-Docker image build call this once, so that RSU processes find the cache; a process with the cache
-loads the kernels in ~0.1 s.
+A process that solves without a cache compiles every kernel on its first solve (about 20 s of CPU on
+the 2-core AMD EPYC of README's figures, 2026-11-23). The project's setup (`make setup`), the test
+session and the Docker image build call this once, so that RSU processes find the cache; a process with
+the cache loads the kernels in a few tenths of a second.
 
     python -m toptag.solvers.warmup      # prints the seconds it took
 """
