@@ -345,7 +345,8 @@ class RsuPipeline:
                     turn_ratio=self.settings.turn_ratio) if obs else None
         fix = None
         if sol is not None and sol.ok:
-            calib = with_calibration(vehicle, obs, sol)  # never more certain than the camera's calibration
+            # never more certain than the camera's calibration, weighed as the solve weighed the corners
+            calib = with_calibration(vehicle, obs, sol, self.settings.turn_ratio)
             fix = Fix.from_solution(sol, t_ns, self.camera.id, seq, calib)
             self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
             self._whereabouts.pop(vid, None)

@@ -28,8 +28,9 @@ PRIOR_SIGMA_PX = 0.1  # the pixel noise that weighs the height prior when the so
 
 
 def calibration_covariance(vehicle: Vehicle, observations: list[TagObservation], solution: PoseSolution,
-                           sigma_h: float = SIGMA_H_DEFAULT) -> np.ndarray:
-    """(3,3) covariance over (x, y, yaw) that the observing cameras' calibration uncertainty adds."""
+                           sigma_h: float = SIGMA_H_DEFAULT, turn_ratio: float = TURN_RATIO) -> np.ndarray:
+    """(3,3) covariance over (x, y, yaw) that the observing cameras' calibration uncertainty adds
+    (turn_ratio: the corner-noise model the solution was weighted with, toptag.solvers.level)."""
     used = [o for o in observations if o.tag_id in solution.tags and o.camera.id in solution.cameras
             and o.tag_id in vehicle.tags]
     if not used or all(o.camera.extrinsic_covariance is None for o in used):
@@ -39,10 +40,10 @@ def calibration_covariance(vehicle: Vehicle, observations: list[TagObservation],
     theta = planar_theta(solution.x, solution.y, solution.yaw, z)
     # Weighted as the level solver weighs corners (edge offsets and turns, toptag.solvers.level), so that
     # the sensitivity is the estimator's own.
-    T = edge_whitener(c.pixels, TURN_RATIO)
+    T = edge_whitener(c.pixels, turn_ratio)
     J = T @ evaluate(c, theta).J_px[:, :4]
     s = solution.sigma_px if math.isfinite(solution.sigma_px) and solution.sigma_px > 0 else PRIOR_SIGMA_PX
-    s_white = s / noise_scale(TURN_RATIO)
+    s_white = s / noise_scale(turn_ratio)
     A = J.T @ J
     A[3, 3] += (s_white / sigma_h) ** 2 if sigma_h > 0 else 1e12
     Jc6 = calib_jacobian(c, theta)
@@ -59,13 +60,14 @@ def calibration_covariance(vehicle: Vehicle, observations: list[TagObservation],
     return total[:3, :3]
 
 
-def with_calibration(vehicle: Vehicle, observations: list[TagObservation], solution: PoseSolution) -> np.ndarray | None:
+def with_calibration(vehicle: Vehicle, observations: list[TagObservation], solution: PoseSolution,
+                     turn_ratio: float = TURN_RATIO) -> np.ndarray | None:
     """Adds the cameras' calibration covariance to the (ok) solution's covariance, in place, and returns
     that share (what every fix of these cameras has in common); None when they state none."""
     if not solution.ok:
         return None
     try:
-        add = calibration_covariance(vehicle, observations, solution)
+        add = calibration_covariance(vehicle, observations, solution, turn_ratio=turn_ratio)
     except np.linalg.LinAlgError:
         return None
     solution.covariance = np.asarray(solution.covariance, float) + add
