@@ -404,7 +404,9 @@ class BusFilter:
         if fix.t_ns > head + ns_from_s(self.cfg.max_future_s):
             return self._count_now(fix, FixOutcome.FUTURE)
         key = fix.key
-        rec = FixRecord(fix, key, FixOutcome.PENDING, arrival_ns=None if arrival is None else int(arrival))
+        # the bias root once per fix, not at every replay that passes it
+        rec = FixRecord(fix, key, FixOutcome.PENDING, arrival_ns=None if arrival is None else int(arrival),
+                        bias_root=self._bias_of(fix))
         i = bisect_right(self._fix_keys, key)
         self._fix_keys.insert(i, key)
         self._fix_t.insert(i, fix.t_ns)
@@ -569,11 +571,12 @@ class BusFilter:
             x[ST_YAW] = wrap_angle(x[ST_YAW])
             P[:3, :3] += var * np.outer(J, J)
             P[:3, i] = P[i, :3] = J * var
-        if first is not None and self._bias_of(first) is not None:
+        L = None if first is None else self._bias_of(first)
+        if L is not None:
             # pose error = L eps + noise: the pose is correlated with that RSU's bias
             x, P, gate = self._add_bias(x, P, gate, first)
             j = self._bias_index(gate, first.source)
-            P[:3, j:j + BIAS_DIM] = self._bias_of(first)
+            P[:3, j:j + BIAS_DIM] = L
             P[j:j + BIAS_DIM, :3] = P[:3, j:j + BIAS_DIM].T
         self._start_ns = t0
         self._steps = [_Step(t0, u0, x, P, gate)]
@@ -648,10 +651,10 @@ class BusFilter:
             tf = rec.fix.t_ns
             if self._offsets and rec.fix.source not in g.clocks:  # kept whatever becomes of the fix
                 x, P, g = self._add_slot(x, P, g, rec.fix)
-            if rec.fix.source not in g.biases and self._bias_of(rec.fix) is not None:
+            if rec.fix.source not in g.biases and rec.bias_root is not None:
                 x, P, g = self._add_bias(x, P, g, rec.fix)
             xf, Pf = self._predict(x, P, s_from_ns(tf - t), a, g) if tf > t else (x, P)
-            xu, Pu, g, outcome, d2, flagged = self._apply_fix(xf, Pf, g, rec.fix, rec.arrival_ns, a)
+            xu, Pu, g, outcome, d2, flagged = self._apply_fix(xf, Pf, g, rec.fix, rec.arrival_ns, a, rec.bias_root)
             if outcome.applied:  # split the interval at the fix; a refused fix leaves it whole
                 x, P, t = xu, Pu, tf
             if record:
@@ -845,10 +848,11 @@ class BusFilter:
         return x, Pn, g._replace(biases=tuple(biases) + (fix.source,))
 
     # ------------------------------------------------------------------ gating
-    def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None, accel: float):
+    def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None, accel: float,
+                   bias_root: np.ndarray | None):
         """Gate one fix against the state at its capture time (its RSU's slot already in the state),
         apply it if it passes, and show it to the drift detector; returns (x, P, gate, outcome, d2,
-        flagged: whether its RSU was flagged)."""
+        flagged: whether its RSU was flagged). bias_root: the fix's FixRecord.bias_root."""
         rsu = fix.source
         n = len(x)
         H = np.zeros((3, n))
@@ -869,7 +873,7 @@ class BusFilter:
         # The drift detector sees the fix against the pose (its bias not taken out: it weighs the
         # calibration share as a bias of its own, toptag.fusion.trust, and a turn must not hide in it).
         nu_pose, R = nu, fix.cov
-        L = self._bias_of(fix) if rsu in g.biases else None
+        L = bias_root if rsu in g.biases else None
         if L is not None:
             j = self._bias_index(g, rsu)
             HPHt_pose = H @ (P @ H.T)

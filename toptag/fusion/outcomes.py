@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
+import numpy as np
+
 from toptag.fix import Fix
 
 
@@ -38,6 +40,7 @@ class FixRecord:
     d2: float = float("nan")  # Mahalanobis distance^2 of the innovation used by the gate
     arrival_ns: int | None = None
     flagged: bool = False  # its RSU was flagged for drift when it was processed (down-weighted or refused)
+    bias_root: np.ndarray | None = None  # L (L L' = fix.calib_cov) when the filter models its RSU's bias
 
 
 def applied_count(counts: dict[str, int]) -> int:
