@@ -270,6 +270,9 @@ def test_latest_only_handler_works_on_the_newest_frame_when_behind(peer_pair):
         pub.put(_frame(seq, rsu="rsu-ne"))
     assert done.wait(60), handled
     assert handled[-1] == 29 and len(handled) < 30, handled  # frames that came while it was busy were dropped
+    # and counted as skipped (overwritten while busy), none as missing (all were sent and arrived)
+    assert sub.counters.get("skipped", Frame) == 30 - len(handled), handled
+    assert sub.counters.get("missing", Frame) == 0
     sub.close()
 
 

@@ -2,14 +2,13 @@
 is counted and logged (rate-limited), never fatal.
 
 Facts this module relies on (eclipse-zenoh 1.10):
-- A subscriber on zenoh.handlers.RingChannel(1) keeps only the newest sample; skipped samples never
-  reach Python, so an RSU that falls behind does not even copy the frames it skips. A callback
-  subscriber whose callback does the work, in contrast, queues without bound on the Python side (100 x
+- A callback subscriber whose callback does the work queues without bound on the Python side (100 x
   1 MiB frames were all buffered behind a 20 ms handler): use latest_only for frames.
-- A pull receiver (latest_only, no handler) keeps the newest sample in a slot from a callback that only
-  swaps it (nothing is decoded or copied there) and wakes the reader: a RingChannel has no recv with a
-  timeout, and polling try_recv every millisecond cost an idle RSU ~1.4 % of a core and up to a
-  millisecond of latency per frame. The slot also tells frames overwritten while the reader was busy
+- latest_only keeps the newest sample in a slot, filled by a callback that only swaps it (nothing is
+  decoded or copied there) and wakes the reader (a pull receiver's recv, or the handler's worker
+  thread). A RingChannel(1) would also keep only the newest, but it has no recv with a timeout, polling
+  its try_recv every millisecond cost an idle RSU ~1.4 % of a core and up to a millisecond of latency
+  per frame, and it hides its overwrites. The slot tells frames overwritten while the reader was busy
   (skipped) from gaps in the sender's sequence that never arrived (missing).
 - A Subscriber whose handler.recv() is blocked in another thread cannot be undeclared
   ("Already borrowed"): block on ``sub.handler`` (a separate object), never on ``sub``.
@@ -50,8 +49,8 @@ class SafeSubscriber(Generic[M]):
 
     Modes:
     - handler, latest_only=False: handler(msg) runs for every sample on a zenoh callback thread.
-    - handler, latest_only=True: samples go to a RingChannel(1); a worker thread runs handler(msg) on
-      the newest one whenever it is free (older ones are overwritten, never decoded).
+    - handler, latest_only=True: a worker thread runs handler(msg) on the newest sample (the slot,
+      see the module doc) whenever it is free; older ones are overwritten, never decoded.
     - handler=None: a pull receiver; call recv(timeout) / try_recv() (latest_only: a slot holding the
       newest sample, see the module doc; else a FIFO of ``capacity``).
     """
@@ -77,18 +76,17 @@ class SafeSubscriber(Generic[M]):
         self._overwritten = 0  # samples the slot lost since the last one taken
         self.arrived = 0  # latest-only pull: samples that reached the slot
         self._arrived = threading.Condition()
-        if handler is not None and not latest_only:
-            self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._on_sample))
-        elif handler is None and latest_only:
+        if latest_only:
             self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._keep_newest))
-        else:
-            channel = zenoh.handlers.RingChannel(1) if latest_only else zenoh.handlers.FifoChannel(capacity)
-            self._sub = session.declare_subscriber(self.key, channel)
-            self._channel = self._sub.handler  # block on this, never on self._sub (see module doc)
             if handler is not None:
                 self._worker = threading.Thread(target=self._run_worker, name=f"sub-{name}-{self.key}",
                                                 daemon=True)
                 self._worker.start()
+        elif handler is not None:
+            self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._on_sample))
+        else:
+            self._sub = session.declare_subscriber(self.key, zenoh.handlers.FifoChannel(capacity))
+            self._channel = self._sub.handler  # block on this, never on self._sub (see module doc)
 
     def _keep_newest(self, sample: zenoh.Sample) -> None:
         with self._arrived:
@@ -133,9 +131,7 @@ class SafeSubscriber(Generic[M]):
             if isinstance(seq, int):
                 last = self._last_seq.get(skey)
                 if last is not None and seq > last + 1 + overwritten:
-                    # a ring (handler mode) hides its overwrites: its gaps count as skipped
-                    self.counters.inc(MISSING if self.handler is None else SKIPPED, self._name, self.key,
-                                      seq - last - 1 - overwritten)
+                    self.counters.inc(MISSING, self._name, self.key, seq - last - 1 - overwritten)
                 self._last_seq[skey] = seq
         return msg
 
@@ -156,11 +152,8 @@ class SafeSubscriber(Generic[M]):
 
     def _run_worker(self) -> None:
         while not self._closed.is_set():
-            try:
-                sample = self._channel.recv()
-            except Exception:  # ZError: channel closed (undeclared or session closed)
-                return
-            msg = self._decode(sample)
+            sample, lost = self._take(None)
+            msg = None if sample is None else self._decode(sample, lost)
             if msg is not None and not self._closed.is_set():
                 self._call(msg)
 
@@ -252,6 +245,6 @@ def subscribe_messages(session: zenoh.Session, key: str, msg_type: type[M],
 def latest_receiver(session: zenoh.Session, key: str, msg_type: type[M] = Frame,
                     counters: MessageCounters | None = None,
                     logger: logging.Logger | None = None) -> SafeSubscriber[M]:
-    """Pull receiver that only ever holds the newest message (RingChannel(1)): recv() returns the latest
-    frame, skipping those that arrived while the caller was busy."""
+    """Pull receiver that only ever holds the newest message (the slot, see the module doc): recv()
+    returns the latest frame, skipping those that arrived while the caller was busy."""
     return SafeSubscriber(session, key, msg_type, None, counters=counters, logger=logger, latest_only=True)
