@@ -7,7 +7,9 @@ simulator scenario) and how they fit together: every RSU's intersection is on th
 unique, every camera's extrinsics are calibrated, no two vehicles share a tag. Prints one line per
 problem (errors: exit 2; warnings: exit 0) and per intersection what its cameras cover: the share of
 the junction box (where the roads cross) that one and two cameras see at roof height (3 m), and warns
-of an intersection no camera covers. Draws the top view (default DIR/site-check.png): roads, approach
+of an intersection no camera covers; and the share of its roads within the approach radius that a
+camera sees, with the distance from the centre up to which 90 % of them are seen: a bus in session
+(inside the approach radius) beyond that is not fixed by an RSU, so its fused pose is not "ok" there. Draws the top view (default DIR/site-check.png): roads, approach
 radius, RSU positions, each camera's footprint on the ground and its 8-25 m band at roof height.
 
 Lives in sim/ because it validates the simulator's scenario too; it draws nothing the RSUs compute.
@@ -63,21 +65,46 @@ def sees(camera: Camera, xy: np.ndarray, z: float = ROOF_Z, near: float = 0.0, f
     return ok & camera.in_image(px)
 
 
-def junction_box(inter: IntersectionSpec, step: float = 0.5) -> np.ndarray:
-    """Grid points (N,2) where the intersection's roads overlap (inside every road's width)."""
-    half = max(r.half_width for r in inter.roads)
+def _grid(half: float, step: float) -> np.ndarray:
     xs = np.arange(-half, half + step / 2, step)
     X, Y = np.meshgrid(xs, xs)
-    pts = np.column_stack([X.ravel(), Y.ravel()])
+    return np.column_stack([X.ravel(), Y.ravel()])
+
+
+def _on_road(pts: np.ndarray, road) -> np.ndarray:
+    return np.abs(pts @ _normal(road.heading_deg)) <= road.half_width
+
+
+def junction_box(inter: IntersectionSpec, step: float = 0.5) -> np.ndarray:
+    """Grid points (N,2) where the intersection's roads overlap (inside every road's width)."""
+    pts = _grid(max(r.half_width for r in inter.roads), step)
     inside = np.zeros(len(pts), bool)
     for i, a in enumerate(inter.roads):
         for b in inter.roads[i + 1:]:
-            ina = np.abs(pts @ _normal(a.heading_deg)) <= a.half_width
-            inb = np.abs(pts @ _normal(b.heading_deg)) <= b.half_width
-            inside |= ina & inb
+            inside |= _on_road(pts, a) & _on_road(pts, b)
     if len(inter.roads) == 1:
-        inside = np.abs(pts @ _normal(inter.roads[0].heading_deg)) <= inter.roads[0].half_width
+        inside = _on_road(pts, inter.roads[0])
     return pts[inside] + np.asarray(inter.center)
+
+
+def approach_roads(inter: IntersectionSpec, step: float = 0.5) -> np.ndarray:
+    """Grid points (N,2) on any of the intersection's roads within its approach radius: where a bus in
+    session drives."""
+    pts = _grid(inter.radius, step)
+    inside = np.hypot(*pts.T) <= inter.radius
+    inside &= np.any([_on_road(pts, r) for r in inter.roads], axis=0)
+    return pts[inside] + np.asarray(inter.center)
+
+
+def covered_radius(distance: np.ndarray, seen: np.ndarray, share: float = 0.9, step: float = 1.0) -> float:
+    """The largest distance r from the centre (in steps) such that at least ``share`` of the points
+    within r are seen; 0 when not even the nearest are."""
+    best = 0.0
+    for r in np.arange(step, distance.max() + step, step):
+        within = distance <= r
+        if within.any() and seen[within].mean() >= share:
+            best = float(r)
+    return best
 
 
 def _normal(heading_deg: float) -> np.ndarray:
@@ -161,7 +188,18 @@ class SiteCheck:
             for c in cams:
                 n += sees(c, box, ROOF_Z, 0.0, FAR)
             one, two = float(np.mean(n >= 1)), float(np.mean(n >= 2))
-            self.coverage[inter.id] = {"cameras": [c.id for c in cams], "one": one, "two": two}
+            roads = approach_roads(inter)
+            seen = np.zeros(len(roads), bool)
+            for c in cams:
+                seen |= sees(c, roads, ROOF_Z, 0.0, FAR)
+            approach = float(np.mean(seen)) if len(roads) else 0.0
+            reach = covered_radius(np.hypot(*(roads - np.asarray(inter.center)).T), seen) if len(roads) else 0.0
+            self.coverage[inter.id] = {"cameras": [c.id for c in cams], "one": one, "two": two,
+                                       "approach": approach, "covered_radius_m": reach}
+            if cams and approach < 0.9:
+                self.notes.append(f"intersection {inter.id}: cameras see {100 * approach:.0f} % of its roads within the "
+                                  f"approach radius ({inter.radius:g} m), 90 % of them up to {reach:g} m from the centre: "
+                                  f"beyond, a bus in session gets no RSU fix (its fused pose is degraded there)")
             if not cams or one == 0.0:
                 self.warnings.append(f"intersection {inter.id}: no camera covers it")
             elif one < 0.9:
@@ -187,8 +225,10 @@ class SiteCheck:
                                      closed=True, fc="0.85", ec="0.6", lw=0.5, zorder=0))
             ax.add_patch(Circle(c, inter.radius, fill=False, ls="--", ec="0.3", lw=1))
             cov = self.coverage.get(inter.id, {})
-            ax.annotate(f"{inter.id}\nseen: {100 * cov.get('one', 0):.0f} % by one, {100 * cov.get('two', 0):.0f} % "
-                        f"by two cameras", c + [0, inter.radius + 2], ha="center", fontsize=8)
+            ax.annotate(f"{inter.id}\njunction box seen: {100 * cov.get('one', 0):.0f} % by one, "
+                        f"{100 * cov.get('two', 0):.0f} % by two cameras\nroads within the approach radius: "
+                        f"{100 * cov.get('approach', 0):.0f} % (90 % up to {cov.get('covered_radius_m', 0):g} m)",
+                        c + [0, inter.radius + 2], ha="center", fontsize=8)
         for k, (cam, _) in enumerate(self.cameras):
             col = colours[k % len(colours)]
             ground = _ground_hits(cam, 0.0, GROUND_RANGE)
@@ -233,7 +273,8 @@ def main(argv: list[str]) -> int:
               f"{len(check.map.intersections)} intersections")
         for iid, cov in check.coverage.items():
             print(f"  {iid}: cameras {', '.join(cov['cameras']) or 'none'}; junction box seen at roof height by one camera "
-                  f"{100 * cov['one']:.0f} %, by two {100 * cov['two']:.0f} %")
+                  f"{100 * cov['one']:.0f} %, by two {100 * cov['two']:.0f} %; roads within the approach radius by one "
+                  f"{100 * cov['approach']:.0f} % (90 % up to {cov['covered_radius_m']:g} m from the centre)")
         out = args.out or args.folder / "site-check.png"
         try:
             require_plotting()
