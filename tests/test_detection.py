@@ -69,3 +69,49 @@ def test_rsu_with_buses_of_two_families_announced_locates_both(family_b):
         sol = res.vehicles[v.id].solution
         assert sol is not None and sol.ok, (v.family, sol)
         assert np.hypot(sol.x - pv.x, sol.y - pv.y) < 0.1
+
+
+def test_a_crop_is_detected_in_place_as_its_copy_is_and_never_written_to():
+    """The C detector reads a crop where it lies in the frame (the frame's row stride, no copy): the same
+    detections as on a contiguous copy of the crop; the frame is left as it was, also with quad_sigma,
+    where the library blurs its undecimated input in place (it is then given a copy)."""
+    from toptag.detection import DetectorSettings
+
+    cam, (a, pa), (b, pb), img = two_buses_frame("tag25h9")
+    x0, y0 = 40, 200
+    crop = img[y0:, x0:]
+    assert not crop.flags.c_contiguous
+    for settings in (DetectorSettings(), DetectorSettings(quad_sigma=0.8), DetectorSettings(quad_decimate=2.0)):
+        det = TagDetector(("tag36h11", "tag25h9"), settings)
+        before = img.copy()
+        try:
+            in_place = det.detect_raw(crop, (x0, y0))
+            copied = det.detect_raw(np.ascontiguousarray(crop), (x0, y0))
+        finally:
+            det.close()
+        assert np.array_equal(img, before)
+        assert len(in_place) >= 3
+        assert [(d.family, d.tag_id) for d in in_place] == [(d.family, d.tag_id) for d in copied]
+        for d, c in zip(in_place, copied):
+            assert np.array_equal(d.corners, c.corners) and d.decision_margin == c.decision_margin
+
+
+def test_the_unrefined_pass_runs_only_when_an_expected_tag_is_missed(monkeypatch):
+    """A crop around tags found at a coarser level: the second decode pass (without edge refinement, to
+    find what the first misses) runs only if the first pass missed one of the expected tags."""
+    cam, (a, pa), (b, pb), img = two_buses_frame("tag25h9")
+    det = TagDetector(("tag36h11", "tag25h9"))
+    calls = []
+    real = TagDetector._detect
+    monkeypatch.setattr(TagDetector, "_detect", lambda self, im: calls.append(1) or real(self, im))
+    try:
+        found = det.detect_raw(img, expected={("tag36h11", 3), ("tag25h9", 5)})
+        assert len(calls) == 1 and {("tag36h11", 3), ("tag25h9", 5)} <= {(d.family, d.tag_id) for d in found}
+        calls.clear()
+        again = det.detect_raw(img, expected={("tag36h11", 3), ("tag36h11", 4)})  # 4 is on no roof
+        assert len(calls) == 2 and len(again) == len(found)
+        calls.clear()
+        det.detect_raw(img, unrefined_pass=False, expected={("tag36h11", 4)})
+        assert len(calls) == 1
+    finally:
+        det.close()

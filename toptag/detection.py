@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import atexit
 import ctypes
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import cv2
@@ -91,7 +92,7 @@ class TagDetector:
 
     def __init__(self, families=("tag36h11",), settings: DetectorSettings | None = None):
         from pupil_apriltags import Detector  # heavy import; only where detection happens
-        from pupil_apriltags.bindings import _ApriltagFamily
+        from pupil_apriltags.bindings import _ApriltagDetection, _ApriltagFamily, _ImageU8, _ZArray
 
         self.settings = settings or DetectorSettings()
         self.families = tuple(sorted(set(families)))
@@ -106,6 +107,11 @@ class TagDetector:
                      refine_edges=int(s.refine_edges), decode_sharpening=s.decode_sharpening)
         self._detector = d
         TagDetector._alive.append(self)
+        self._image_type = _ImageU8
+        self._detection_list = ctypes.POINTER(ctypes.POINTER(_ApriltagDetection))
+        d.libc.apriltag_detector_detect.restype = ctypes.POINTER(_ZArray)
+        d.libc.apriltag_detector_detect.argtypes = [ctypes.c_void_p, ctypes.POINTER(_ImageU8)]
+        d.libc.apriltag_detections_destroy.restype = None
         # pupil-apriltags 1.0.4 passes decode_sharpening through int(), turning 0.25 into 0: set it as the
         # C library expects (a double).
         d.tag_detector_ptr.contents.decode_sharpening = float(s.decode_sharpening)
@@ -148,18 +154,21 @@ class TagDetector:
             det.close()
 
     def detect_raw(self, gray: np.ndarray, offset=(0, 0), upsample: int = 1,
-                   unrefined_pass: bool | None = None) -> list[RawDetection]:
+                   unrefined_pass: bool | None = None,
+                   expected: Collection[tuple[str, int]] | None = None) -> list[RawDetection]:
         """Every tag of the detector's families in `gray` (uint8, 2-D); `offset` is the (x, y) of
         gray's first pixel in the full frame when gray is a crop. `upsample` > 1 enlarges the image
         (bicubic) before detection: far tags with cells of 1-2 px are decoded far more reliably and
         their corners are more precise. unrefined_pass: the second decode pass without edge refinement
         (default: the settings'; the RSU's tracking crops, where the tag is expected and small ones
-        are enlarged, skip it)."""
+        are enlarged, skip it). expected: the (family, id) of tags known to be in gray (found there at
+        a coarser level): the second pass, there to find what the first misses, runs only if the first
+        missed one of them."""
         if gray.dtype != np.uint8 or gray.ndim != 2:
             raise ValueError("detector input must be a 2-D uint8 image")
         if self._detector.tag_detector_ptr is None:
             raise RuntimeError("detector was closed")
-        img = np.ascontiguousarray(gray)
+        img = gray if gray.strides[1] == 1 else np.ascontiguousarray(gray)
         if upsample > 1:
             img = cv2.resize(img, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_CUBIC)
         # pupil's corner (0, 0) is the first pixel's corner; in the enlarged image that is the same
@@ -168,6 +177,8 @@ class TagDetector:
         s = self.settings
         out = self._decoded(img, upsample, shift)
         second = s.unrefined_pass if unrefined_pass is None else unrefined_pass
+        if second and expected is not None:
+            second = not set(expected) <= {(d.family, d.tag_id) for d in out}
         if s.refine_edges and second and s.quad_decimate == 1.0:
             ptr = self._detector.tag_detector_ptr.contents
             ptr.refine_edges = 0
@@ -185,13 +196,39 @@ class TagDetector:
 
     def _decoded(self, img: np.ndarray, upsample: int, shift: np.ndarray) -> list[RawDetection]:
         out = []
-        for d in self._detector.detect(img):
-            fam = d.tag_family.decode() if isinstance(d.tag_family, bytes) else str(d.tag_family)
-            if d.hamming > self.gate(fam):
+        for fam, tag_id, hamming, margin, quad in self._detect(img):
+            if hamming > self.gate(fam):
                 continue
-            corners = shift_edges(np.asarray(d.corners, dtype=float) / upsample, self.settings.edge_shift_px)
-            out.append(RawDetection(fam, int(d.tag_id), corners + shift, int(d.hamming), float(d.decision_margin)))
+            corners = shift_edges(quad / upsample, self.settings.edge_shift_px)
+            out.append(RawDetection(fam, tag_id, corners + shift, hamming, margin))
         return out
+
+    def _detect(self, img: np.ndarray) -> list[tuple[str, int, int, float, np.ndarray]]:
+        """(family, id, bit errors, decision margin, corners in pupil's convention) of each tag the C
+        detector finds in img (uint8, rows of contiguous pixels, any row stride).
+
+        The C library reads the pixels where they are (a crop of a frame is passed with the frame's
+        stride): pupil's `Detector.detect` would allocate a zeroed C image and copy the pixels first, on
+        an acquisition band of a 3200x2400 frame megabytes per call. The library writes into its input
+        only when it blurs or sharpens the undecimated quad image (quad_sigma != 0, quad_decimate <= 1):
+        then it gets a copy, as pupil would give it."""
+        d, s = self._detector, self.settings
+        if s.quad_sigma != 0 and s.quad_decimate <= 1:
+            img = img.copy()
+        h, w = img.shape
+        c_img = self._image_type(w, h, img.strides[0], img.ctypes.data_as(ctypes.POINTER(ctypes.c_uint8)))
+        found = d.libc.apriltag_detector_detect(d.tag_detector_ptr, ctypes.byref(c_img))
+        try:
+            za = found.contents
+            tags = ctypes.cast(za.data, self._detection_list)
+            out = []
+            for i in range(za.size):
+                t = tags[i].contents
+                out.append((ctypes.string_at(t.family.contents.name).decode(), int(t.id), int(t.hamming),
+                            float(t.decision_margin), np.ctypeslib.as_array(t.p).copy()))
+            return out
+        finally:
+            d.libc.apriltag_detections_destroy(found)
 
 
 def _same_tag(a: RawDetection, b: RawDetection) -> bool:
