@@ -111,6 +111,7 @@ class DetectJob:
     decimate: float = 1.0
     upsample: int = 1
     thorough: bool = True  # no tag known there: decode with the second pass (DetectorSettings.unrefined_pass)
+    expect: frozenset[tuple[str, int]] | None = None  # tags found there coarsely: the second pass only if one is missed
 
     @property
     def cost(self) -> float:
@@ -137,32 +138,41 @@ class FrameResult:
     acquired: bool = False
 
 
+# A lone job at least this costly (DetectJob.cost: pixels searched) runs on the detector's own threads
+# (the C library's: its stages split the image in rows, same results): acquisition's confirmation at
+# full resolution would otherwise keep one core waiting. Smaller ones (tracking crops) are not worth
+# the threads' hand-offs.
+_THREADED_JOB_COST = 100_000
+
+
 class _DetectorPool:
-    """One detector per thread and decimation: pupil-apriltags detectors are not thread-safe, and its
+    """One detector per thread, decimation and threading: pupil-apriltags detectors are not thread-safe, and its
     ctypes calls release the GIL, so crops really run on both cores."""
 
     def __init__(self, families, settings: DetectorSettings, workers: int):
-        self.families, self.settings = families, settings
+        self.families, self.settings, self.workers = families, settings, workers
         self._local = threading.local()
         self.executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
 
-    def _detector(self, decimate: float) -> TagDetector:
+    def _detector(self, decimate: float, threaded: bool = False) -> TagDetector:
         cache = self._local.__dict__.setdefault("detectors", {})
-        if decimate not in cache:
-            s = self.settings.model_copy(update={"quad_decimate": float(decimate)})
-            cache[decimate] = TagDetector(self.families, s)
-        return cache[decimate]
+        key = (decimate, threaded)
+        if key not in cache:
+            nthreads = max(self.settings.nthreads, self.workers) if threaded else self.settings.nthreads
+            s = self.settings.model_copy(update={"quad_decimate": float(decimate), "nthreads": nthreads})
+            cache[key] = TagDetector(self.families, s)
+        return cache[key]
 
     def run(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[list[RawDetection]]:
         """Detections per job, in job order."""
 
-        def one(job: DetectJob):
+        def one(job: DetectJob, threaded: bool = False):
             b = job.box
-            return self._detector(job.decimate).detect_raw(gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample,
-                                                           None if job.thorough else False)
+            return self._detector(job.decimate, threaded).detect_raw(
+                gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample, None if job.thorough else False, job.expect)
 
         if self.executor is None or len(jobs) < 2:
-            return [one(j) for j in jobs]
+            return [one(j, self.workers > 1 and j.cost >= _THREADED_JOB_COST) for j in jobs]
         order = sorted(range(len(jobs)), key=lambda i: -jobs[i].cost)  # largest first: workers end together
         results = dict(zip(order, self.executor.map(one, [jobs[i] for i in order])))
         return [results[i] for i in range(len(jobs))]
@@ -449,7 +459,7 @@ class RsuPipeline:
             box = Box(max(0, int(lo[0] - pad)), max(0, int(lo[1] - pad)),
                       min(self.camera.width, int(hi[0] + pad) + 1), min(self.camera.height, int(hi[1] + pad) + 1))
             side = float(np.linalg.norm(np.roll(d.corners, -1, axis=0) - d.corners, axis=1).min())
-            jobs.append(DetectJob(box, 1.0, self._upsample_for(side)))
+            jobs.append(DetectJob(box, 1.0, self._upsample_for(side), expect=frozenset({(d.family, d.tag_id)})))
         return [d for found in pool.run(gray, _merge_jobs(jobs)) for d in found]
 
 
@@ -461,7 +471,9 @@ def _merge_jobs(jobs: list[DetectJob]) -> list[DetectJob]:
     for box in merged:
         parts = [j for j in jobs if box.overlaps(j.box)]
         up = max((j.upsample for j in parts), default=1)
-        out.append(DetectJob(box, 1.0, up, thorough=any(j.thorough for j in parts) or not parts))
+        known = [j.expect for j in parts]
+        expect = frozenset().union(*known) if known and None not in known else None
+        out.append(DetectJob(box, 1.0, up, thorough=any(j.thorough for j in parts) or not parts, expect=expect))
     return out
 
 
