@@ -115,3 +115,17 @@ def test_the_unrefined_pass_runs_only_when_an_expected_tag_is_missed(monkeypatch
         assert len(calls) == 1
     finally:
         det.close()
+
+
+def test_a_contrast_floor_leaves_out_tags_of_less_contrast_for_that_call_only():
+    """min_contrast (AprilTag's min_white_black_diff) above the tags' black/white difference finds none of
+    them; the next call without it finds them again (the floor is not left set in the detector)."""
+    cam, (a, pa), (b, pb), img = two_buses_frame("tag25h9")
+    det = TagDetector(("tag36h11", "tag25h9"))
+    try:
+        assert len(det.detect_raw(img)) == 4
+        assert len(det.detect_raw(img, min_contrast=20)) == 4  # the default light: ~115 grey levels
+        assert det.detect_raw(img, min_contrast=200) == []
+        assert len(det.detect_raw(img)) == 4
+    finally:
+        det.close()

@@ -51,6 +51,23 @@ class DetectorSettings(BaseModel):
     unrefined_pass: bool = True
 
 
+class _QuadThresholds(ctypes.Structure):
+    """AprilTag 3's apriltag_quad_thresh_params."""
+
+    _fields_ = [("min_cluster_pixels", ctypes.c_int), ("max_nmaxima", ctypes.c_int),
+                ("critical_rad", ctypes.c_float), ("cos_critical_rad", ctypes.c_float),
+                ("max_line_fit_mse", ctypes.c_float), ("min_white_black_diff", ctypes.c_int),
+                ("deglitch", ctypes.c_int)]
+
+
+class _DetectorHead(ctypes.Structure):
+    """The C detector struct up to its quad thresholds (pupil-apriltags' _ApriltagDetector stops before)."""
+
+    _fields_ = [("nthreads", ctypes.c_int), ("quad_decimate", ctypes.c_float), ("quad_sigma", ctypes.c_float),
+                ("refine_edges", ctypes.c_int), ("decode_sharpening", ctypes.c_double), ("debug", ctypes.c_int),
+                ("qtp", _QuadThresholds)]
+
+
 @dataclass
 class TagObservation:
     """One detected tag of a known vehicle in one camera."""
@@ -108,6 +125,11 @@ class TagDetector:
         self._detector = d
         TagDetector._alive.append(self)
         self._image_type = _ImageU8
+        self._thresholds = ctypes.cast(d.tag_detector_ptr, ctypes.POINTER(_DetectorHead)).contents.qtp
+        if (self._thresholds.max_nmaxima, self._thresholds.max_line_fit_mse) != (10, 10.0):
+            self.close()  # not AprilTag 3's defaults where they should be: another struct layout
+            raise RuntimeError("pupil-apriltags' C detector is not laid out as AprilTag 3's")
+        self._min_contrast = int(self._thresholds.min_white_black_diff)
         self._detection_list = ctypes.POINTER(ctypes.POINTER(_ApriltagDetection))
         d.libc.apriltag_detector_detect.restype = ctypes.POINTER(_ZArray)
         d.libc.apriltag_detector_detect.argtypes = [ctypes.c_void_p, ctypes.POINTER(_ImageU8)]
@@ -154,8 +176,8 @@ class TagDetector:
             det.close()
 
     def detect_raw(self, gray: np.ndarray, offset=(0, 0), upsample: int = 1,
-                   unrefined_pass: bool | None = None,
-                   expected: Collection[tuple[str, int]] | None = None) -> list[RawDetection]:
+                   unrefined_pass: bool | None = None, expected: Collection[tuple[str, int]] | None = None,
+                   min_contrast: int | None = None) -> list[RawDetection]:
         """Every tag of the detector's families in `gray` (uint8, 2-D); `offset` is the (x, y) of
         gray's first pixel in the full frame when gray is a crop. `upsample` > 1 enlarges the image
         (bicubic) before detection: far tags with cells of 1-2 px are decoded far more reliably and
@@ -163,7 +185,9 @@ class TagDetector:
         (default: the settings'; the RSU's tracking crops, where the tag is expected and small ones
         are enlarged, skip it). expected: the (family, id) of tags known to be in gray (found there at
         a coarser level): the second pass, there to find what the first misses, runs only if the first
-        missed one of them."""
+        missed one of them. min_contrast: the grey levels by which a region's brightest pixels must
+        exceed its darkest for the quad search to binarise it (AprilTag's min_white_black_diff; default
+        the library's 5): a higher floor leaves flat, noisy regions out, and tags of less contrast."""
         if gray.dtype != np.uint8 or gray.ndim != 2:
             raise ValueError("detector input must be a 2-D uint8 image")
         if self._detector.tag_detector_ptr is None:
@@ -175,18 +199,22 @@ class TagDetector:
         # point as in the original, so scale first, then move to OpenCV's pixel-centre convention.
         shift = np.array([offset[0] + PUPIL_TO_OPENCV, offset[1] + PUPIL_TO_OPENCV])
         s = self.settings
-        out = self._decoded(img, upsample, shift)
-        second = s.unrefined_pass if unrefined_pass is None else unrefined_pass
-        if second and expected is not None:
-            second = not set(expected) <= {(d.family, d.tag_id) for d in out}
-        if s.refine_edges and second and s.quad_decimate == 1.0:
-            ptr = self._detector.tag_detector_ptr.contents
-            ptr.refine_edges = 0
-            try:
-                extra = self._decoded(img, upsample, shift)
-            finally:
-                ptr.refine_edges = 1
-            out += [d for d in extra if not any(_same_tag(d, o) for o in out)]
+        self._thresholds.min_white_black_diff = self._min_contrast if min_contrast is None else int(min_contrast)
+        try:
+            out = self._decoded(img, upsample, shift)
+            second = s.unrefined_pass if unrefined_pass is None else unrefined_pass
+            if second and expected is not None:
+                second = not set(expected) <= {(d.family, d.tag_id) for d in out}
+            if s.refine_edges and second and s.quad_decimate == 1.0:
+                ptr = self._detector.tag_detector_ptr.contents
+                ptr.refine_edges = 0
+                try:
+                    extra = self._decoded(img, upsample, shift)
+                finally:
+                    ptr.refine_edges = 1
+                out += [d for d in extra if not any(_same_tag(d, o) for o in out)]
+        finally:
+            self._thresholds.min_white_black_diff = self._min_contrast
         return out
 
     def gate(self, family: str) -> int:

@@ -65,6 +65,13 @@ class PipelineSettings(BaseModel):
     # doubles a search's cost (most of it in the far, enlarged band) and, on the demo's frames, found no
     # bus the first pass missed (`toptag bench rsu --scenario`: same fixes, 0.76 -> 0.56 cores).
     acquire_unrefined_pass: bool = False
+    # In acquisition's decimated bands (whose finds are re-detected at full resolution), the quad search
+    # leaves out regions whose brightest and darkest pixels differ by less than this fraction of the
+    # frame's mean grey level (AprilTag's min_white_black_diff, kept within its default 5 and
+    # ACQUIRE_MAX_CONTRAST): flat road under sensor noise is most of a search's cost, and a tag differs
+    # from its white border by about the scene's mean level (1.15x in the simulator's default lighting; a
+    # roof in a shadow that takes 80 % of the light still passes). 0: the library's floor everywhere.
+    acquire_min_contrast: float = Field(default=0.2, ge=0.0, le=1.0)
     # Tags whose shortest side is below this many pixels are detected in a 2x enlarged image: at 20-25 m
     # on 960x720 a cell is 1-2 px tall and decoding fails without it.
     upsample_below_px: float = 24.0
@@ -112,6 +119,7 @@ class DetectJob:
     upsample: int = 1
     thorough: bool = True  # no tag known there: decode with the second pass (DetectorSettings.unrefined_pass)
     expect: frozenset[tuple[str, int]] | None = None  # tags found there coarsely: the second pass only if one is missed
+    min_contrast: int | None = None  # grey levels a region must span to be searched (None: the detector's floor)
 
     @property
     def cost(self) -> float:
@@ -138,6 +146,10 @@ class FrameResult:
     acquired: bool = False
 
 
+# The contrast floor of acquisition's decimated bands (PipelineSettings.acquire_min_contrast) in grey
+# levels: at least AprilTag's own default; at most 20, a sixth of a default-lit tag's contrast (a bright
+# or overexposed frame does not raise it further).
+APRILTAG_MIN_CONTRAST, ACQUIRE_MAX_CONTRAST = 5, 20
 # A lone job at least this costly (DetectJob.cost: pixels searched) runs on the detector's own threads
 # (the C library's: its stages split the image in rows, same results): acquisition's confirmation at
 # full resolution would otherwise keep one core waiting. Smaller ones (tracking crops) are not worth
@@ -169,7 +181,8 @@ class _DetectorPool:
         def one(job: DetectJob, threaded: bool = False):
             b = job.box
             return self._detector(job.decimate, threaded).detect_raw(
-                gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample, None if job.thorough else False, job.expect)
+                gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample, None if job.thorough else False, job.expect,
+                job.min_contrast)
 
         if self.executor is None or len(jobs) < 2:
             return [one(j, self.workers > 1 and j.cost >= _THREADED_JOB_COST) for j in jobs]
@@ -326,6 +339,7 @@ class RsuPipeline:
             if where:
                 searched_tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound])
             jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], searched_tiles)
+            jobs = self._contrast_floor(image(), jobs) if jobs else []
             per_job = pool.run(image(), jobs) if jobs else []
             raw += [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
             wanted = {(self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids}
@@ -416,6 +430,16 @@ class RsuPipeline:
             for box in merge_boxes([g for g in grown if min(g.x1 - g.x0, g.y1 - g.y0) * b.upsample >= 8 * b.decimate]):
                 jobs.append(DetectJob(box, b.decimate, b.upsample, thorough))
         return jobs
+
+    def _contrast_floor(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[DetectJob]:
+        """Acquisition's decimated jobs with the contrast a region needs to be searched
+        (PipelineSettings.acquire_min_contrast, of the frame's mean grey level on a sparse grid)."""
+        ratio = self.settings.acquire_min_contrast
+        if not ratio or all(j.decimate == 1.0 for j in jobs):
+            return jobs
+        floor = round(ratio * float(gray[::16, ::16].mean()))
+        floor = int(min(ACQUIRE_MAX_CONTRAST, max(floor, APRILTAG_MIN_CONTRAST)))
+        return [replace(j, min_contrast=floor) if j.decimate != 1.0 else j for j in jobs]
 
     def _hint_at(self, vid: str, t_ns: int):
         """(what predicts the unfound vehicle's pose, extra margin) to crop for its tags: another RSU's
