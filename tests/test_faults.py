@@ -107,11 +107,16 @@ def test_the_bundled_faults_scenario_loads():
     sc = load_scenario(DEMO / "scenario-faults.json")
     w = World(sc)
     assert sc.faults["rsu-ne"].clock_offset_ms == 40 and sc.faults["rsu-sw"].drift.yaw_deg == 1.0
-    # its buses' settings: the drift thresholds for the live pipeline, a file that loads
+    # its buses' settings: a busy machine's, a file that loads; the drift thresholds are the filter's
+    # defaults, and the 0.2 deg scenario takes the same file
     from services.bus.agent import BusSettings
+    from toptag.fusion.filter import FilterConfig
     from toptag.settings import load_settings
     f = load_settings(sc.bus_config, BusSettings).filter
-    assert (f.drift_min_pos_m, f.drift_min_yaw_deg) == (0.10, 0.3)
+    assert (f.drift_min_pos_m, f.drift_min_yaw_deg) == (0.03, 0.1) == \
+        (FilterConfig().drift_min_pos_m, FilterConfig().drift_min_yaw_deg)
+    assert (f.drift_window_s, f.drift_min_fixes) == (30.0, 6.0)
+    assert load_scenario(DEMO / "scenario-drift02.json").bus_config == sc.bus_config
     assert not w.faults[w.rsu_ids.index("rsu-ne")].clock_disciplined
     assert w.faults[w.rsu_ids.index("rsu-se")] == RsuFault()
 
