@@ -38,7 +38,8 @@ def fix_to_message(fix: Fix, bus_id: str, intersection_id: str, publish_time_ns:
                    yaw=fix.yaw, covariance=fix.cov.tolist(), method=fix.method, tags_used=list(fix.tags),
                    reprojection_rms_px=fix.rms_px, frame_seq=fix.seq, processing_ns=processing_ns,
                    ambiguous=fix.ambiguous, clock=clock,
-                   calibration_covariance=None if fix.calib_cov is None else fix.calib_cov.tolist())
+                   calibration_covariance=None if fix.calib_cov is None else fix.calib_cov.tolist(),
+                   calibration_id=fix.calib_id)
 
 
 def fix_from_message(m: PoseFix, arrival_ns: int | None = None) -> Fix:
@@ -48,7 +49,7 @@ def fix_from_message(m: PoseFix, arrival_ns: int | None = None) -> Fix:
                seq=m.frame_seq, arrival_ns=arrival_ns, z=m.z, method=m.method, tags=tuple(m.tags_used),
                rms_px=m.reprojection_rms_px, ambiguous=m.ambiguous,
                clock_bound_ns=None if m.clock is None else m.clock.sync_uncertainty_ns,
-               calib_cov=m.calibration_covariance)
+               calib_cov=m.calibration_covariance, calib_id=m.calibration_id)
 
 
 def reported_position(p: CoarsePosition) -> ReportedPosition:

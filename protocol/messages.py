@@ -251,6 +251,11 @@ class PoseFix(Message):
     calibration_covariance: Covariance3 | None = Field(
         default=None, description="the share of covariance that the camera's calibration adds: common to every fix "
                                   "of this camera, a constant bias (added in v1; None: none stated)")
+    calibration_id: str | None = Field(
+        default=None, min_length=1, max_length=64, exclude_if=lambda v: v is None,
+        description="which calibration of the camera made this fix (e.g. a digest of its camera file): a bus that "
+                    "sees it change forgets what it learnt of this RSU's long-run disagreement with the others "
+                    "(added in v1; None: not said, and not written, so a fix without it is what v1 senders wrote)")
 
     @property
     def measurement_delta_ns(self) -> int:

@@ -234,6 +234,20 @@ def test_pose_fix_carries_the_ambiguity_flag():
     assert decode(json.dumps(d).encode(), PoseFix).ambiguous is False
 
 
+def test_pose_fix_carries_the_calibration_id():
+    """A fix may say which calibration of its camera made it (the bus forgets the RSU's long run when it
+    changes): stated, it survives the wire and reaches the core fix; unstated, the JSON is what v1 senders
+    wrote (no null field for an older receiver to refuse), and such a message decodes without it."""
+    from protocol.convert import fix_from_message
+
+    fix = SAMPLES["PoseFix"]
+    assert "calibration_id" not in json.loads(encode(fix)) and decode(encode(fix), PoseFix).calibration_id is None
+    stated = fix.model_copy(update={"calibration_id": "914d84e886e0"})
+    back = decode(encode(stated), PoseFix)
+    assert back.calibration_id == "914d84e886e0" and fix_from_message(back).calib_id == "914d84e886e0"
+    assert fix_from_message(decode(encode(fix), PoseFix)).calib_id is None
+
+
 def test_approach_carries_the_roof_height_sigma():
     """The code bag's optional height_sigma (issue 11) rides the Approach: declared, it survives the wire
     and reaches the Vehicle the RSU builds; undeclared, the bag's JSON is byte for byte what v1 senders
@@ -333,13 +347,13 @@ def test_core_fix_to_wire_and_back_keeps_every_field():
 
     cov = np.array([[4e-4, 1e-5, 0.0], [1e-5, 9e-4, 0.0], [0.0, 0.0, 1e-5]])
     fix = Fix(t_ns=1_700_000_000_123_456_789, x=-5.5, y=3.25, yaw=2.5, cov=cov, source="rsu-sw", seq=41,
-              z=3.02, method="level", tags=(3, 7), rms_px=0.08)
+              z=3.02, method="level", tags=(3, 7), rms_px=0.08, calib_id="914d84e886e0")
     msg = fix_to_message(fix, "bus-17", "x1", publish_time_ns=fix.t_ns + 9_000_000, processing_ns=7_000_000)
     assert (msg.capture_time_ns, msg.rsu_id, msg.frame_seq, msg.tags_used) == (fix.t_ns, "rsu-sw", 41, [3, 7])
     back = fix_from_message(decode(encode(msg), PoseFix), arrival_ns=fix.t_ns + 12_000_000)
     assert back.arrival_ns == fix.t_ns + 12_000_000
     assert back.replace(arrival_ns=None).__dict__.keys() == fix.__dict__.keys()
-    for name in ("t_ns", "x", "y", "yaw", "source", "seq", "z", "method", "tags", "rms_px"):
+    for name in ("t_ns", "x", "y", "yaw", "source", "seq", "z", "method", "tags", "rms_px", "calib_id"):
         assert getattr(back, name) == getattr(fix, name), name
     assert np.array_equal(back.cov, fix.cov)
     with pytest.raises(ValueError, match="lacks method, tags, rms_px"):

@@ -11,6 +11,7 @@ intrinsics but no extrinsics marks a camera not yet placed in the site: services
 """
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -166,6 +167,17 @@ class Camera:
         self.calibration = calibration
         ext = calibration.extrinsics if calibration is not None else None
         self.extrinsic_covariance: np.ndarray | None = None if ext is None else np.asarray(ext.covariance, float)
+
+    @property
+    def calibration_id(self) -> str:
+        """Which calibration this is: 12 hex digits of a digest of the intrinsics, distortion and pose (and the
+        calibration's date, when the file says it). A fix states it (`Fix.calib_id`, PoseFix.calibration_id)
+        so that a bus forgets what it learnt of a camera's long-run disagreement once it is recalibrated."""
+        h = hashlib.sha256((np.concatenate([self.K.ravel(), self.dist, self.R.ravel(), self.t]).round(12) + 0.0).tobytes())
+        date = None if self.calibration is None else self.calibration.date
+        if date:
+            h.update(date.encode())
+        return h.hexdigest()[:12]
 
     def require_extrinsics(self, source: str = "camera") -> "Camera":
         """InputError if the file says its extrinsics were never calibrated (intrinsics only)."""

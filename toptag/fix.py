@@ -26,7 +26,9 @@ class Fix:
     when that clock is not known to be disciplined (the filter then expects a larger time offset).
     calib_cov: the share of cov that the camera's calibration uncertainty adds (3x3; None: none stated).
     It is in cov (a fix is never more certain than the camera that saw it), and it is common to every
-    fix of that camera: a constant bias, not noise (the bus's drift detector weighs it so)."""
+    fix of that camera: a constant bias, not noise (the bus's drift detector weighs it so).
+    calib_id: which calibration of the camera made it (e.g. `Camera.calibration_id`; None: not said): when
+    it changes the bus forgets what it learnt of the RSU's long-run disagreement with the others."""
     t_ns: int
     x: float
     y: float
@@ -42,6 +44,7 @@ class Fix:
     ambiguous: bool = False  # a lone tag whose mirrored pose fits as well: cov covers both (issue 11)
     clock_bound_ns: int | None = None
     calib_cov: np.ndarray | None = None
+    calib_id: str | None = None
 
     def __post_init__(self):
         self.t_ns = int(self.t_ns)
@@ -54,6 +57,7 @@ class Fix:
         self.clock_bound_ns = None if self.clock_bound_ns is None else int(self.clock_bound_ns)
         if self.calib_cov is not None:
             self.calib_cov = np.asarray(self.calib_cov, dtype=float).reshape(3, 3)
+        self.calib_id = None if self.calib_id is None else str(self.calib_id)
 
     @classmethod
     def from_solution(cls, solution: PoseSolution, t_ns: int, source: str, seq: int | None = None,

@@ -975,8 +975,11 @@ class BusFilter:
         shares is its constant bias (toptag.fusion.trust), not noise: the fix's calibration share, and
         for a flagged RSU what its held time offset's uncertainty implies (`off_cov`: along the track)."""
         rsu = fix.source
-        rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None)
+        rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None,
+                                           calib_id=fix.calib_id)
         rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
+        if rec.calib_id != fix.calib_id:  # recalibrated: what was learnt of the old calibration goes
+            rec = rec.recalibrated(fix.calib_id)
         rsus = dict(g.rsus)
         healthy = g.mode == TRACKING and g.last_accept_ns is not None and \
             fix.t_ns - g.last_accept_ns <= self._healthy_ns

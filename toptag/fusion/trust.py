@@ -62,8 +62,13 @@ in their difference Delta = d_now - d_long. A turn within what the calibration a
 test above, which must allow the whole bias) is still a change: T_c = Delta' (C_now + C_long +
 change_bias_share² B)^-1 Delta, the last term for how differently a camera's error moves fixes in other
 parts of its view. It flags (`flagged_by` "change") at its own false-alarm quantile, with the same
-conditions as above, and clears when T_c falls back. The first pass has no long run: the test above
-alone decides there.
+conditions as above, and one more: the suspect's change must explain every other RSU's (had it alone
+moved, by Delta, another's deviation would have moved by -lambda Delta / k, lambda in [0, 1] as far as
+their evidence overlapped in time; each other's change less that, including RSUs seen earlier in the
+pass and out of the window now, is at most 1 / isolation_ratio as significant). It clears when T_c
+falls back. The first pass has no long run: the test above alone decides there. The long run is of one
+calibration: when an RSU's fixes state another one (`Fix.calib_id`, the camera recalibrated) its
+record starts afresh (RsuRecord.recalibrated).
 While an RSU is flagged its fixes are down-weighted (covariance scaled and d d' added) or refused
 (`FilterConfig.flagged_policy`); the filter, if it was following it, widens its pose by the others'
 mean disagreement so that they can pull it back, and the others' evidence, gathered against that
@@ -117,6 +122,8 @@ class RsuRecord(NamedTuple):
     flagged_by: str | None = None  # "others" (its deviation from them) or "change" (from its own long run)
     change: np.ndarray | None = None  # this pass's deviation minus the long-run one, at its last decision
     change_stat: float = 0.0  # its chi-square
+    # The calibration its fixes say they were made with (Fix.calib_id): its long run is of that one only.
+    calib_id: str | None = None
 
     @property
     def flagged(self) -> bool:
@@ -136,6 +143,12 @@ class RsuRecord(NamedTuple):
         rec = self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None, Bs=None,
                             current=None, past=past, baseline=baseline, change=None, change_stat=0.0)
         return rec if self.flagged else rec._replace(deviation=None, deviation_stat=0.0, others_mean=None)
+
+    def recalibrated(self, calib_id: str | None) -> RsuRecord:
+        """The record of an RSU whose fixes now state another calibration (`Fix.calib_id`): its camera
+        was recalibrated, so what it learnt of the old one goes (this pass's innovations, the earlier
+        passes' and the long-run deviations); a flag stays until new evidence clears it."""
+        return self.restart(keep_past=False)._replace(calib_id=calib_id)
 
     def disagreement(self) -> np.ndarray:
         """Its disagreement: the deviation from the other RSUs when known, else from the filter."""
@@ -265,10 +278,11 @@ class DriftRule:
         return d, _chi2(d, Cn + Cb), mo, n, current
 
     def _change(self, rec: RsuRecord, current: tuple, others: list[RsuRecord], t_ns: int) -> tuple | None:
-        """(Delta, T_c): this pass's deviation from the others minus its long-run one, and its chi-square
-        against their noise and the part of the biases that may differ between where the bus was seen
-        then and now (change_bias_share: a camera's error moves a fix differently across its view); the
-        constant bias itself cancels. None without a long-run deviation of at least min_fixes fixes."""
+        """(Delta, T_c, its covariance): this pass's deviation from the others minus its long-run one, and
+        its chi-square against their noise and the part of the biases that may differ between where the
+        bus was seen then and now (change_bias_share: a camera's error moves a fix differently across its
+        view); the constant bias itself cancels. None without a long-run deviation of at least min_fixes
+        fixes."""
         if rec.baseline is None or self.baseline_window_s <= 0:
             return None
         base = _mean(rec.baseline)
@@ -277,7 +291,8 @@ class DriftRule:
         k = len(others)
         Cb = self.bias_cov(rec) + sum(self.bias_cov(o) for o in others) / (k * k)
         delta = current[0] - base[0]
-        return delta, _chi2(delta, current[1] + base[1] + self.change_bias_share ** 2 * Cb)
+        C = current[1] + base[1] + self.change_bias_share ** 2 * Cb
+        return delta, _chi2(delta, C), C
 
     def decide(self, records: dict[str, RsuRecord], rsu: str, t_ns: int,
                offset_sigma_s: float = 0.0) -> RsuRecord:
@@ -312,26 +327,45 @@ class DriftRule:
         if T_d > self.flag_stat and n >= self.min_fixes and self._large(d) and self._isolated(others, T_d, t_ns):
             return rec._replace(flagged_since=t_ns, flagged_by="others", past=None)
         if change is not None and change[1] > self.change_flag_stat and current[2] >= self.min_fixes \
-                and self._large(change[0]) and self._isolated(others, change[1], t_ns, records):
+                and self._large(change[0]) and self._isolated(others, change[1], t_ns) \
+                and self._explains(rsu, change, records, t_ns):
             return rec._replace(flagged_since=t_ns, flagged_by="change", past=None)
         return rec
 
-    def _isolated(self, others: dict[str, RsuRecord], stat: float, t_ns: int,
-                  records: dict[str, RsuRecord] | None = None) -> bool:
+    def _isolated(self, others: dict[str, RsuRecord], stat: float, t_ns: int) -> bool:
         """Do the others agree among themselves (without the RSU under test)? Each one's deviation from
-        the rest has a chi-square at most 1 / isolation_ratio of `stat`; with `records` (the change test),
-        each one's change from its own long run too (the RSU that turned moves the others' deviations by a
-        share of its turn only)."""
+        the rest has a chi-square at most 1 / isolation_ratio of `stat`."""
         for k, o in others.items():
             rest = [x for j, x in others.items() if j != k]
             if rest and self.isolation_ratio * self._deviation(o, rest, t_ns)[1] > stat:
                 return False
-            if records is not None:
-                everyone = [x for j, x in records.items() if j != k and x.m is not None and not x.flagged]
-                if everyone and o.current is not None:
-                    c = self._change(o, o.current, everyone, t_ns)
-                    if c is not None and self.isolation_ratio * c[1] > stat:
-                        return False
+        return True
+
+    def _explains(self, rsu: str, change: tuple, records: dict[str, RsuRecord], t_ns: int) -> bool:
+        """Does the suspect's change explain every other RSU's? Had only the suspect moved (by Delta), an
+        other RSU's deviation from the others (the suspect among k of them) would have moved by -Delta / k
+        where its evidence overlapped the suspect's in time, and not at all where it did not: by
+        -lambda Delta / k, lambda in [0, 1]. So each other unflagged RSU with a long run, in view now or
+        seen earlier in this pass, has its own change less the best such share at most 1 / isolation_ratio
+        as significant as the suspect's change. Without it, a healthy RSU that saw the filter pulled by a
+        turned camera (after the turned one had left the window) was flagged once in 48 runs."""
+        live = {k: x for k, x in records.items() if x.m is not None and not x.flagged}
+        for k, o in live.items():
+            if k == rsu or o.current is None:
+                continue
+            everyone = [x for j, x in live.items() if j != k]
+            c = self._change(o, o.current, everyone, t_ns) if everyone else None
+            if c is None:
+                continue
+            share = change[0] / len(everyone)
+            try:
+                W_share = np.linalg.solve(c[2], share)
+            except np.linalg.LinAlgError:
+                continue
+            denom = float(share @ W_share)
+            lam = 0.0 if denom <= 0 else min(1.0, max(0.0, -float(c[0] @ W_share) / denom))
+            if self.isolation_ratio * _chi2(c[0] + lam * share, c[2]) > change[1]:
+                return False
         return True
 
 
