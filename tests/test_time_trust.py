@@ -455,6 +455,26 @@ def test_on_a_starved_machine_the_turned_camera_is_flagged_over_passes(turn):
     assert flagged[120.0] is not None and flagged[120.0] >= 1 and flagged[0.0] is None, flagged
 
 
+def test_a_slow_ramp_is_flagged_once_the_turn_adds_up():
+    """rsu-se's camera turns by 0.2 deg over 300 s (0.04 deg more at each pass of the bus, 60 s apart; the
+    study's thresholds, each pass's filter from the last one's memory): it is flagged by the sixth pass
+    (0.2 deg) at the latest, never on the first two (0 and 0.04 deg), and no other RSU ever is (`toptag eval fusion --drift-deg rsu-se=0.2@100/300 --passes 8`: flagged in 8/8 runs at
+    0.08-0.17 deg)."""
+    faults = faults_from_options(drift_deg="rsu-se=0.2@0/300")
+    mem, when = None, None
+    for k in range(6):
+        tr = bus_trajectory("left", "w", seed=0, t0_ns=bus_trajectory("left", "w", seed=0).t0_ns + k * 60 * 10**9)
+        imu = ImuModel().synthesize(tr, 0.0, tr.duration, np.random.default_rng(60 + k))
+        fixes = simulate_fixes(tr, FixErrorModel(), 4, np.random.default_rng(80 + k), faults=faults, t_offset_s=60.0 * k)
+        flt = drive(study_filter(memory=mem), imu, arrivals(fixes, faults, jitter_ms=30, seed=k))
+        a = flt.rsu_assessments()
+        assert not any(v.flagged for r, v in a.items() if r != "rsu-se"), (k, a)
+        if a["rsu-se"].flagged and when is None:
+            when = k
+        mem = flt.memory()
+    assert when is not None and when >= 2, when
+
+
 WELL_CALIBRATED = FixErrorModel(calib_rot_sigma_deg=0.02, calib_trans_sigma=0.01)  # a realistic stated calibration
 
 
