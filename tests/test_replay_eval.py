@@ -86,6 +86,20 @@ def test_filter_settings_from_toml_change_the_result_and_unknown_keys_are_refuse
         load_filter_config(bad)
 
 
+@pytest.mark.unit
+def test_fixes_can_be_re_timed_as_a_quiet_machine_would_deliver_them(drive):
+    """--fix-latency-ms: every fix arrives that long after its capture (here 40-70 ms as recorded, re-timed
+    to 10 ms): the same fixes and IMU, another result; with a latency past the 2 s buffer most fixes are
+    too old (those after the last IMU sample are not). No RSU is flagged for drift on these healthy fixes (the report lists flags)."""
+    recorded = evaluate(drive, BUS, load_filter_config(None))
+    quick = evaluate(drive, BUS, load_filter_config(None), fix_latency_ms=10)
+    assert quick["fix_latency_ms"] == 10 and recorded["fix_latency_ms"] is None
+    assert (quick["fixes"], quick["imu_samples"]) == (recorded["fixes"], recorded["imu_samples"])
+    assert quick["digest"] != recorded["digest"] and quick["drift_flags"] == recorded["drift_flags"] == []
+    late = evaluate(drive, BUS, load_filter_config(None), fix_latency_ms=3000)
+    assert quick["filter"]["too_old"] == 0 and late["filter"]["too_old"] > late["fixes"] / 2
+
+
 @pytest.mark.integration
 def test_eval_replay_command(drive, tmp_path):
     out = tmp_path / "r.json"
