@@ -641,10 +641,14 @@ def test_fusion_study_writes_the_evidence_of_time_and_trust(tmp_path):
     (["--drift-deg", "rsu-se=big"], "--drift-deg: expected RSU=DEG"),
     (["--clock-offset-ms", "rsu-xx=30"], "faults name RSUs the study does not have: rsu-xx"),
     (["--route", "left,loop"], "--route: unknown route(s) loop"),
+    (["--bus-config", "BAD"], "drift_min_pos_mm: unknown key"),
 ])
 def test_fusion_study_options_are_checked(tmp_path, capsys, argv, says):
     from sim.studies import fusion
 
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[filter]\ndrift_min_pos_mm = 2.0\n")
+    argv = [str(bad) if a == "BAD" else a for a in argv]
     assert fusion.main(["--out", str(tmp_path), "--runs", "1", "--no-plots", *argv]) == 2
     err = capsys.readouterr().err
     assert says in err and len(err.strip().splitlines()) == 1

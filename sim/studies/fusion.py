@@ -53,6 +53,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from sim.faults import RsuFault, describe, faults_from_options, seen_pose, turned
 from sim.image_model import ImageModel, perturb_camera
@@ -771,6 +772,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "carried but not updated (consider), or white noise (noise, as before); default: the filter's")
     p.add_argument("--calib-bias-corr-m", type=float, default=None, metavar="M",
                    help="distance over which the filter lets an RSU's calibration bias decorrelate; default: the filter's")
+    p.add_argument("--bus-config", default=None, metavar="BUS.toml",
+                   help="a bus settings file (toptag bus --config): the keys of its [filter] table override the study's "
+                        "(e.g. drift_baseline_window_s = 0, the change test off as in the bus's defaults)")
     p.add_argument("--passes", type=int, default=1, metavar="N",
                    help="passes per run: the same bus and cameras, each pass's filter starting from what the last "
                         "learnt (the drift detector's change test needs earlier passes); default 1")
@@ -781,6 +785,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="figures to write: all (default), trust (with faults: the offset and drift figures only), none")
     p.add_argument("--no-plots", action="store_true", help="the same as --plots none")
     return p
+
+
+def _filter_table(path: str | None) -> dict:
+    """The [filter] table of a bus settings file (only the keys it sets; {} without a file)."""
+    if path is None:
+        return {}
+    from toptag.settings import describe_settings_error, read_settings
+
+    table = read_settings(path).get("filter", {})
+    try:
+        FilterConfig(**table)
+    except ValidationError as e:
+        raise InputError(f"settings {path}: {describe_settings_error(e)}") from None
+    return table
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -808,8 +826,10 @@ def main(argv: list[str] | None = None) -> int:
         if a.calib_deg < 0 or a.calib_cm < 0:
             raise InputError("--calib-deg and --calib-cm must be >= 0")
         opts = {"flagged_policy": a.flagged, "calib_bias": a.calib_bias, "calib_bias_corr_m": a.calib_bias_corr_m}
-        cfg = FilterConfig(**STUDY_DRIFT_THRESHOLDS, drift_calibration_is_bias=not a.calib_as_noise,
-                           **{k: v for k, v in opts.items() if v is not None})
+        if a.calib_as_noise:
+            opts["drift_calibration_is_bias"] = False
+        cfg = FilterConfig(**(STUDY_DRIFT_THRESHOLDS | _filter_table(a.bus_config)
+                              | {k: v for k, v in opts.items() if v is not None}))
         fix_model = FixErrorModel(calib_rot_sigma_deg=a.calib_deg, calib_trans_sigma=a.calib_cm / 100)
         if a.passes < 1 or a.pass_gap_s < 0:
             raise InputError("--passes must be >= 1 and --pass-gap-s >= 0")
