@@ -3,6 +3,7 @@ falling back to acquisition, never reporting an unannounced bus, equal accuracy 
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -15,11 +16,13 @@ from sim.scene import bundled_vehicle, rsu_camera
 from toptag.detection import DetectorSettings
 from toptag.geometry import vehicle_to_world
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
-from toptag.rsu.regions import acquisition_bands, tag_extent_by_row
-from toptag.rsu.whereabouts import ViewGrid, Whereabouts, tile_boxes
+from toptag.rsu.regions import acquisition_bands, plane_scale_px, tag_extent_by_row, tag_minor_px
+from toptag.rsu.whereabouts import CELL_M, ViewGrid, Whereabouts, tile_boxes
+from toptag.camera import Camera
 from toptag.vehicle import Vehicle
 
 pytestmark = pytest.mark.unit
+DEMO = Path(__file__).resolve().parents[1] / "toptag" / "data" / "demo"
 
 
 @pytest.fixture(scope="module")
@@ -355,3 +358,105 @@ def test_a_tracked_buses_fix_is_final_before_the_frames_search_runs(bus_pass):
     assert res.acquired
     assert events == [(bus.id, "tracked", True), "search", (other.id, "searching", False)]
     assert list(res.vehicles) == [bus.id, other.id]
+
+
+def test_a_deferred_search_runs_between_frames_and_its_find_is_tracked_after(bus_pass):
+    """process(defer_search=True) only begins a due search (the unfound bus "waiting", nothing found yet);
+    continue_search runs a batch of its jobs and stops while told that a newer frame waits; the next
+    frame is processed meanwhile and begins no second search; once the search ends, its result is its own
+    frame's (the bus acquired there, the fix stamped with that frame's time), and the bus is tracked from
+    the next frame on."""
+    camera, bus, frames = bus_pass
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    (t1, img1, _, _), (t2, img2, _, _), (t3, img3, _, _) = (frames[i] for i in shown[2:5])
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    first = p.process(img1, t1, defer_search=True)
+    assert first.search_deferred and not first.acquired and p.search_pending
+    assert first.vehicles[bus.id].mode == "waiting" and first.vehicles[bus.id].fix is None
+    jobs = len(p._search.jobs)
+    assert jobs > p.settings.workers
+    assert p.continue_search(should_yield=lambda: True) is None  # one batch, then the newer frame's turn
+    assert len(p._search.found) == p.settings.workers
+    second = p.process(img2, t2, defer_search=True)
+    assert not second.search_deferred and second.vehicles[bus.id].mode == "waiting"
+    got = []
+    done = p.continue_search(should_yield=lambda: False, on_vehicle=got.append)
+    assert done is not None and not p.search_pending and done.acquired and done.t_ns == t1
+    vr = done.vehicles[bus.id]
+    assert got == [vr] and vr.mode == "acquired" and vr.fix is not None and vr.fix.t_ns == t1
+    third = p.process(img3, t3, defer_search=True)
+    assert third.vehicles[bus.id].mode == "tracked" and third.vehicles[bus.id].fix is not None
+
+
+
+def test_plane_scale_is_the_shortest_and_longest_image_of_a_metre_on_the_roof():
+    """plane_scale_px against brute force: a 0.5 m segment of the roof plane turned through 180 degrees,
+    its image's length per metre, shortest and longest; a tag's minor extent is its side times the
+    shortest (a stretched tag's longer edge across it, if that is still the smaller)."""
+    camera = rsu_camera("sw")
+    ground = camera.backproject_to_plane(np.array([[300.0, 150.0], [700.0, 600.0], [100.0, 40.0]]), 3.0)
+    smin, smax = plane_scale_px(camera, ground)
+    for k, p in enumerate(ground):
+        a = np.linspace(0, np.pi, 180, endpoint=False)
+        ends = np.column_stack([p[0] + 0.25 * np.cos(a), p[1] + 0.25 * np.sin(a), np.full(a.size, 3.0)])
+        starts = np.column_stack([p[0] - 0.25 * np.cos(a), p[1] - 0.25 * np.sin(a), np.full(a.size, 3.0)])
+        lengths = np.linalg.norm(camera.project(ends) - camera.project(starts), axis=1) / 0.5
+        assert (smin[k], smax[k]) == (pytest.approx(lengths.min(), rel=0.02), pytest.approx(lengths.max(), rel=0.02))
+        assert 0 < smin[k] < smax[k]
+    assert tag_minor_px(1.6, 1.6, smin, smax) == pytest.approx(1.6 * smin)
+    assert tag_minor_px(1.0, 3.0, smin, smax) == pytest.approx(np.minimum(3.0 * smin, 1.0 * smax))
+    behind = plane_scale_px(camera, np.array([[-60.0, -60.0, 3.0]]))  # behind the south-west RSU
+    assert behind[0][0] == 0 and behind[1][0] == 0
+
+
+class Decoder:
+    """The frame as a function that counts how often the pipeline decodes it."""
+
+    def __init__(self, img):
+        self.img, self.calls = img, 0
+
+    def __call__(self):
+        self.calls += 1
+        return self.img
+
+
+def test_a_bus_whose_tags_would_be_too_small_to_decode_is_not_searched_for(bus_pass):
+    """A bus said to be where its footprint is in the image but every tag would project below the
+    decodable size (acquire_min_tag_px): no search, the frame is not even decoded. With no such limit,
+    the same report costs a search in vain. Where its tags are large enough, it is searched for."""
+    _, _, frames = bus_pass
+    t_ns, img, _, _ = frames[0]
+    # The demo's south-west camera (its lens's barrel distortion shows the roof out to ~40 m in its
+    # corners) and a bus with 0.5 m tags: beyond ~15 m they are too small.
+    camera = Camera.load(DEMO / "rsu-sw.json")
+    bus = Vehicle.from_dict({"id": "small-tags", "height": 3.0, "length": 6.0, "width": 2.0,
+                             "tags": [{"id": 3, "size": 0.5, "center": [1.5, 0.0]}, {"id": 7, "size": 0.5}]})
+    limit = PipelineSettings().acquire_min_tag_px
+    radius = float(np.hypot(bus.length, bus.width)) / 2
+    every = ViewGrid.build(camera, bus.height, radius)
+    decodable = ViewGrid.build(camera, bus.height, radius, tags_m=tuple((t.size, t.extent_up) for t in bus.tags.values()),
+                               min_tag_px=limit)
+    assert limit > 0 and 0 < decodable.in_view.sum() < every.in_view.sum()
+    assert not (decodable.in_view & ~every.in_view).any()
+    # A cell in view whose neighbours are all too far to decode too.
+    small = (every.in_view & ~decodable.in_view).reshape(every.ny, every.nx)
+    shown = decodable.in_view.reshape(every.ny, every.nx)
+    near_shown = cv2.dilate(shown.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    iy, ix = np.argwhere(small & ~near_shown)[0]
+    x, y = every.x0 + CELL_M * ix, every.y0 + CELL_M * iy
+    modes = {}
+    for min_px in (limit, 0.0):
+        p = RsuPipeline(camera, PipelineSettings(acquire_min_tag_px=min_px))
+        p.add_vehicle(bus)
+        p.coarse_position(bus.id, t_ns, x, y, 0.1)
+        frame = Decoder(img)
+        res = p.process(frame, t_ns)
+        modes[min_px] = (res.vehicles[bus.id].mode, res.acquired, frame.calls)
+    assert modes == {limit: ("out_of_view", False, 0), 0.0: ("searching", True, 1)}
+    iy, ix = np.argwhere(shown)[len(np.argwhere(shown)) // 2]
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    p.coarse_position(bus.id, t_ns, every.x0 + CELL_M * ix, every.y0 + CELL_M * iy, 0.1)
+    assert p.process(Decoder(img), t_ns).acquired
+

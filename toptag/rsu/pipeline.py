@@ -75,6 +75,11 @@ class PipelineSettings(BaseModel):
     # Tags whose shortest side is below this many pixels are detected in a 2x enlarged image: at 20-25 m
     # on 960x720 a cell is 1-2 px tall and decoding fails without it.
     upsample_below_px: float = 24.0
+    # ... in acquisition's search (None: upsample_below_px). A find is confirmed at full resolution, enlarged
+    # by upsample_below_px, so this changes what a search finds, not the fix. On the demo's renderer and
+    # image model (`python -m sim.studies.acquire_range`, 313 tags at 960x720), 16 decoded 226 tags where
+    # 24 decoded 227, for 23 % less search work (12: 205 tags).
+    acquire_upsample_below_px: float | None = Field(default=16.0, gt=0)
     # While other buses are tracked, an unfound one is searched at most this often: acquisition is the
     # expensive step and tracked buses must keep their frame rate.
     acquire_period_s: float = 0.5
@@ -103,6 +108,14 @@ class PipelineSettings(BaseModel):
     # Acquisition searches only where an unfound bus can be (toptag.rsu.whereabouts): after a search in
     # vain, only where it can have come since. False: the whole frame every time.
     search_where_possible: bool = True
+    # ... and only where some tag of the bus can project with a minor extent (its extent across its most
+    # foreshortened direction, toptag.rsu.regions.tag_minor_px) of at least this many px: where all are
+    # smaller the detector cannot decode them and a search is in vain (the bus is left to the RSUs that see
+    # it larger, whose fixes hint this one). On the demo's renderer and image model at 960x720, acquisition
+    # decoded no tag below 6.8 px, 0 of 28 below 6 px, 2 of 26 at 6-8 px, 6 of 25 at 8-9 px (`python -m
+    # sim.studies.acquire_range`); this is the smallest decoded with a margin, and the grid takes each
+    # cell's best case (the bus anywhere in the cell, at any yaw). 0: wherever its footprint is in the image.
+    acquire_min_tag_px: float = Field(default=6.0, ge=0.0)
     crop_pad_px: float = 6.0
     workers: int = Field(default=2, ge=1)
 
@@ -143,7 +156,25 @@ class FrameResult:
     detect_ms: float = 0.0
     solve_ms: float = 0.0
     pixels_searched: int = 0
+    search_cost_px: float = 0.0  # the acquisition search's detection work (DetectJob.cost), 0 without one
     acquired: bool = False
+    search_deferred: bool = False  # a search for the unfound buses was begun, to go on in continue_search
+
+
+@dataclass
+class _Search:
+    """An acquisition search begun on one frame and run, a few jobs at a time, between later frames
+    (RsuPipeline.process(defer_search=True), continue_search)."""
+
+    t_ns: int
+    seq: int | None
+    gray: np.ndarray | None  # None: no jobs
+    vehicle_ids: list[str]
+    tiles: np.ndarray | None  # the image tiles searched (None: the whole frame)
+    jobs: list[DetectJob]  # largest first
+    pool: "_DetectorPool"
+    found: list = field(default_factory=list)  # detections of jobs[:len(found)]
+    detect_s: float = 0.0
 
 
 # The contrast floor of acquisition's decimated bands (PipelineSettings.acquire_min_contrast) in grey
@@ -208,6 +239,7 @@ class RsuPipeline:
         self._last_acquire_ns: int | None = None
         self._grids: dict[tuple[float, float], ViewGrid] = {}
         self._whereabouts: dict[str, Whereabouts] = {}
+        self._search: _Search | None = None  # a deferred search under way
 
     # ---- code bags ----------------------------------------------------------------------------
     def add_vehicle(self, vehicle: Vehicle) -> None:
@@ -221,6 +253,8 @@ class RsuPipeline:
         self._coarse.pop(vehicle_id, None)
         self._report_misses.pop(vehicle_id, None)
         self._whereabouts.pop(vehicle_id, None)
+        if self._search is not None and not any(v in self.vehicles for v in self._search.vehicle_ids):
+            self._search = None
 
     def coarse_position(self, vehicle_id: str, t_ns: int, x: float, y: float, sigma_m: float,
                         velocity: tuple[float, float] | None = None, velocity_sigma: float = 0.0,
@@ -241,9 +275,11 @@ class RsuPipeline:
         v = self.vehicles[vid]
         wb = self._whereabouts.get(vid)
         if wb is None:
-            key = (round(v.height, 2), round(float(np.hypot(v.length, v.width)) / 2, 2))
+            tags = tuple(sorted({(round(t.size, 3), round(t.extent_up, 3)) for t in v.tags.values()}))
+            key = (round(v.height, 2), round(float(np.hypot(v.length, v.width)) / 2, 2), tags)
             if key not in self._grids:
-                self._grids[key] = ViewGrid.build(self.camera, key[0], key[1], pad_px=self.settings.crop_pad_px)
+                self._grids[key] = ViewGrid.build(self.camera, key[0], key[1], pad_px=self.settings.crop_pad_px,
+                                                  tags_m=tags, min_tag_px=self.settings.acquire_min_tag_px)
             wb = self._whereabouts[vid] = Whereabouts(self._grids[key], BUS_MAX_SPEED_MPS * SPEED_MARGIN)
         wb.advance(t_ns)
         c, h = self._coarse.get(vid), self._hints.get(vid)
@@ -273,12 +309,15 @@ class RsuPipeline:
 
     # ---- per frame ----------------------------------------------------------------------------
     def process(self, gray: np.ndarray | Callable[[], np.ndarray], t_ns: int, seq: int | None = None,
-                on_vehicle: Callable[[VehicleResult], None] | None = None) -> FrameResult:
+                on_vehicle: Callable[[VehicleResult], None] | None = None, defer_search: bool = False) -> FrameResult:
         """Detect and solve every announced vehicle in the frame captured at t_ns (frame number seq).
         gray: the image, or a function that decodes it, called only when some region is to be searched
         (a frame whose buses are all out of view, or whose search is not due, is never decoded).
         on_vehicle: called with each vehicle's result as soon as it is final; the tracked and hinted
-        buses' come before the frame's acquisition search runs, so their fixes never wait for it."""
+        buses' come before the frame's acquisition search runs, so their fixes never wait for it.
+        defer_search: a due acquisition search is only begun (result.search_deferred; the unfound buses
+        are "waiting"), to be run by continue_search between frames, so that it never delays the next
+        frame; no other search begins until it ends."""
         result = FrameResult(t_ns)
         if not self.vehicles:
             return result
@@ -332,35 +371,106 @@ class RsuPipeline:
         result.solve_ms = (t2 - t1) * 1e3
 
         # The others: searched for where they can be, if a search is due.
-        result.acquired = bool(unfound) and self._acquisition_due(t_ns, bool(tracked))
-        searched_tiles = None
-        if result.acquired:
+        due = bool(unfound) and self._search is None and self._acquisition_due(t_ns, bool(tracked))
+        search = None
+        if due:
             self._last_acquire_ns = t_ns
-            if where:
-                searched_tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound])
-            jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], searched_tiles)
+            tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound]) if where else None
+            jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], tiles)
             jobs = self._contrast_floor(image(), jobs) if jobs else []
-            per_job = pool.run(image(), jobs) if jobs else []
-            raw += [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
-            wanted = {(self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids}
-            coarse = [d for job, found in zip(jobs, per_job) if job.decimate != 1.0 for d in found
-                      if (d.family, d.tag_id) in wanted]
-            if coarse:
-                raw += self._confirm_full_resolution(image(), coarse, pool)
+            search = _Search(t_ns, seq, image() if jobs else None, list(unfound), tiles,
+                             sorted(jobs, key=lambda j: -j.cost), pool)
             result.pixels_searched += sum(j.box.area for j in jobs)
-            observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
+            result.search_cost_px = sum(j.cost for j in jobs)
+            if defer_search and jobs:
+                self._search, result.search_deferred = search, True
+            else:
+                result.acquired = True
+                raw += self._run_search(search)
+                observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
         t3 = time.perf_counter()
         result.detect_ms += (t3 - t2) * 1e3
         for vid in away + unfound:
             mode = "out_of_view" if vid in away else ("acquired" if result.acquired else "waiting")
             obs = observed.get(vid, [])  # an "away" bus's tags may still show in another's crop
             vr = self._conclude(vid, obs, mode, t_ns, seq, 0)
-            if searched_tiles is not None and vid in unfound and not obs:
-                where[vid].searched(searched_tiles)
+            if result.acquired and search.tiles is not None and vid in unfound and not obs:
+                where[vid].searched(search.tiles)
             done(vr)
         result.solve_ms += (time.perf_counter() - t3) * 1e3
         result.vehicles = {vid: result.vehicles[vid] for vid in self.vehicles}
         return result
+
+    @property
+    def tracking(self) -> bool:
+        """Is some bus tracked?"""
+        return self.settings.tracking and any(tr.found for tr in self.tracks.values())
+
+    @property
+    def search_pending(self) -> bool:
+        """Is a deferred search under way (continue_search)?"""
+        return self._search is not None
+
+    def drop_search(self) -> None:
+        """Abandon the deferred search (its buses are searched for again when due)."""
+        self._search = None
+
+    def continue_search(self, should_yield: Callable[[], bool] | None = None,
+                        on_vehicle: Callable[[VehicleResult], None] | None = None) -> FrameResult | None:
+        """Go on with the deferred search: a batch of its jobs (one per worker) at least, then more until
+        should_yield() says a newer frame waits. When it ends: its frame's result for the buses it sought
+        (mode "acquired", or "searching" when not found; a bus found meanwhile by other means, or gone, is
+        left out), each also to on_vehicle. None while it goes on, or when there is none."""
+        s = self._search
+        if s is None:
+            return None
+        raw = self._run_search(s, should_yield)
+        if raw is None:
+            return None
+        self._search = None
+        t0 = time.perf_counter()
+        result = FrameResult(s.t_ns, acquired=True, pixels_searched=sum(j.box.area for j in s.jobs),
+                             search_cost_px=sum(j.cost for j in s.jobs))
+        observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
+        for vid in s.vehicle_ids:
+            if vid not in self.vehicles or self.tracks[vid].found:
+                continue
+            obs = observed.get(vid, [])
+            vr = self._conclude(vid, obs, "acquired", s.t_ns, s.seq, 0)
+            wb = self._whereabouts.get(vid)
+            if s.tiles is not None and not obs and wb is not None:
+                # not there at the search's frame; since then it may have driven back into some of it
+                wb.searched(s.tiles, regrow_m=self._driven(s.t_ns, wb.t_ns if wb.t_ns is not None else s.t_ns))
+            result.vehicles[vid] = vr
+            if on_vehicle is not None:
+                on_vehicle(vr)
+        result.detect_ms = s.detect_s * 1e3
+        result.solve_ms = (time.perf_counter() - t0) * 1e3
+        return result
+
+    def _run_search(self, s: _Search, should_yield: Callable[[], bool] | None = None) -> list[RawDetection] | None:
+        """The search's detections (coarse finds confirmed at full resolution), once all its jobs have run;
+        with should_yield, a batch of jobs at a time, returning None when it says to stop."""
+        step = len(s.jobs) if should_yield is None else max(1, self.settings.workers)
+        ran = 0
+        t0 = time.perf_counter()
+        try:
+            while len(s.found) < len(s.jobs):
+                if ran and should_yield is not None and should_yield():
+                    return None
+                batch = s.jobs[len(s.found):len(s.found) + step]
+                s.found += s.pool.run(s.gray, batch)
+                ran += 1
+            raw = [d for job, found in zip(s.jobs, s.found) if job.decimate == 1.0 for d in found]
+            wanted = {(self.vehicles[v].family, tid) for v in s.vehicle_ids if v in self.vehicles
+                      for tid in self.vehicles[v].tag_ids}
+            coarse = [d for job, found in zip(s.jobs, s.found) if job.decimate != 1.0 for d in found
+                      if (d.family, d.tag_id) in wanted]
+            if coarse:
+                raw += self._confirm_full_resolution(s.gray, coarse, s.pool)
+            return raw
+        finally:
+            s.detect_s += time.perf_counter() - t0
 
     def _conclude(self, vid: str, obs: list, mode: str, t_ns: int, seq: int | None, regions: int) -> VehicleResult:
         """Solve one vehicle from its observations in this frame and update its track."""
@@ -414,8 +524,9 @@ class RsuPipeline:
         size = min(min(t.size, t.extent_up) for v in vehicles for t in v.tags.values())
         key = (round(roof, 2), round(size, 3))
         if key not in self._bands:
+            upsample_below = s.upsample_below_px if s.acquire_upsample_below_px is None else s.acquire_upsample_below_px
             self._bands[key] = acquisition_bands(self.camera, roof, size, s.acquire_min_side_px,
-                                                 s.acquire_max_decimate, s.upsample_below_px)
+                                                 s.acquire_max_decimate, upsample_below)
         bands = self._bands[key]
         thorough = s.acquire_unrefined_pass
         if tiles is None:

@@ -149,3 +149,33 @@ def acquisition_bands(camera: Camera, roof_z: float, tag_size: float, min_side_p
             bands.append(Band(box, max(level, 1.0), 2 if level < 1 else 1, float(reach[start:r].max())))
             start = r
     return bands
+
+
+def plane_scale_px(camera: Camera, points_world: np.ndarray, step_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels per metre of the horizontal plane through each world point, in its most and least
+    foreshortened directions: the singular values (smallest, largest) of the projection's Jacobian
+    there. Zeros for points not in front of the camera. A flat tag of side s at the point spans about
+    s * smallest px across its most foreshortened direction, whatever its yaw."""
+    p = np.asarray(points_world, float).reshape(-1, 3)
+    out_min, out_max = np.zeros(len(p)), np.zeros(len(p))
+    front = camera.to_camera(p)[:, 2] > 0.1
+    if not front.any():
+        return out_min, out_max
+    q = p[front]
+    uv = camera.project(q)
+    ju = (camera.project(q + [step_m, 0.0, 0.0]) - uv) / step_m  # d(u, v) / dx
+    jv = (camera.project(q + [0.0, step_m, 0.0]) - uv) / step_m  # d(u, v) / dy
+    # singular values of the 2x2 [ju jv] in closed form
+    a, b, c, d = ju[:, 0], jv[:, 0], ju[:, 1], jv[:, 1]
+    s1 = a * a + b * b + c * c + d * d
+    det = np.abs(a * d - b * c)
+    root = np.sqrt(np.maximum(s1 * s1 - 4 * det * det, 0.0))
+    out_max[front] = np.sqrt((s1 + root) / 2)
+    out_min[front] = np.sqrt(np.maximum((s1 - root) / 2, 0.0))
+    return out_min, out_max
+
+
+def tag_minor_px(size_m: float, up_m: float, scale_min: np.ndarray, scale_max: np.ndarray) -> np.ndarray:
+    """The shorter of a flat tag's two projected extents (px) at its best yaw, from plane_scale_px's
+    scales: its longer edge along the most foreshortened direction, its shorter across it."""
+    return np.minimum(max(size_m, up_m) * scale_min, min(size_m, up_m) * scale_max)

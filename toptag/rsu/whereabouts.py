@@ -22,7 +22,7 @@ import numpy as np
 
 from toptag.camera import Camera
 from toptag.limits import BUS_MAX_DECEL_MPS2, BUS_MAX_SPEED_MPS, BUS_MAX_YAW_RATE
-from toptag.rsu.regions import Box
+from toptag.rsu.regions import Box, plane_scale_px, tag_minor_px
 from toptag.rsu.tracking import PosePrediction
 from toptag.units import s_from_ns
 
@@ -106,12 +106,19 @@ class ViewGrid:
     y0: float
     nx: int
     ny: int
-    in_view: np.ndarray  # (ny*nx,) bool: the vehicle's image footprint there overlaps the image
+    # (ny*nx,) bool: the vehicle's image footprint there overlaps the image (and, when the grid was built
+    # for a decodable size, some tag of it there can project at least that large)
+    in_view: np.ndarray
     tiles: np.ndarray  # (ny*nx, 4) int: tile columns [tx0, tx1) and rows [ty0, ty1) of that footprint
 
     @classmethod
     def build(cls, camera: Camera, roof_z: float, radius_m: float, dz: float = 0.3, pad_px: float = 4.0,
-              cell_m: float = CELL_M, max_range_m: float = MAX_RANGE_M) -> "ViewGrid":
+              cell_m: float = CELL_M, max_range_m: float = MAX_RANGE_M, tags_m: tuple = (),
+              min_tag_px: float = 0.0) -> "ViewGrid":
+        """tags_m: the vehicle's tags as (side, extent along its up axis) in metres; with min_tag_px > 0, a
+        cell is in view only where one of them, on a roof centred anywhere in the cell, at any yaw, could
+        project with a minor extent (regions.tag_minor_px) of at least min_tag_px: a search for a bus
+        that can only be farther is in vain, the detector cannot decode its tags."""
         w, h = camera.width, camera.height
         border = np.concatenate([
             np.column_stack([np.linspace(0, w - 1, 64), np.zeros(64)]),
@@ -151,6 +158,8 @@ class ViewGrid:
         inside = np.zeros(len(world), bool)
         inside[front] = camera.in_image(uv.reshape(-1, 2)[front], margin=-pad_px)
         in_view = partial | inside.reshape(len(centres), -1).any(axis=1)
+        if min_tag_px > 0 and tags_m:
+            in_view &= _best_tag_px(camera, centres, roof_z + dz, r, cell_m, (ny, nx), tags_m) >= min_tag_px
         tile_w, tile_h = w / TILES[0], h / TILES[1]
         tiles = np.zeros((len(centres), 4), int)
         tiles[in_view, 0] = np.clip(np.floor(u0[in_view] / tile_w), 0, TILES[0] - 1)
@@ -166,6 +175,17 @@ class ViewGrid:
         r = radius + CELL_M * np.sqrt(0.5)
         return gy[:, None] ** 2 + gx[None, :] ** 2 <= r * r
 
+
+
+def _best_tag_px(camera: Camera, centres: np.ndarray, z: float, reach_m: float, cell_m: float, shape, tags_m) -> np.ndarray:
+    """(n,) the largest minor extent (px) any of the tags can have on a roof at height z whose tag lies
+    within reach_m of a cell centre: the tags' extents at each centre, at its best yaw, maximised over the
+    disc (a grey dilation of the grid)."""
+    smin, smax = plane_scale_px(camera, np.column_stack([centres, np.full(len(centres), z)]))
+    px = np.max([tag_minor_px(side, up, smin, smax) for side, up in tags_m], axis=0)
+    k = int(np.ceil(reach_m / cell_m))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    return cv2.dilate(px.reshape(shape).astype(np.float32), kernel).ravel()
 
 
 class Whereabouts:
@@ -188,15 +208,19 @@ class Whereabouts:
         elif self.t_ns is not None:
             self._growth_m += self.speed * (t_ns - self.t_ns) * 1e-9
             k = int(self._growth_m // CELL_M)
-            if k > 0 and not self.possible.all():
-                kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
-                grown = cv2.dilate(self.possible.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT,
-                                   borderValue=int(self.beyond))
-                self.possible = grown.astype(bool)
-                p = self.possible
-                self.beyond |= bool(p[0].any() or p[-1].any() or p[:, 0].any() or p[:, -1].any())
+            self._grow(k)
             self._growth_m -= k * CELL_M
         self.t_ns = t_ns
+
+    def _grow(self, k: int) -> None:
+        """Every position within k cells of a possible one becomes possible (also from beyond the grid)."""
+        if k > 0 and not self.possible.all():
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+            grown = cv2.dilate(self.possible.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT,
+                               borderValue=int(self.beyond))
+            self.possible = grown.astype(bool)
+            p = self.possible
+            self.beyond |= bool(p[0].any() or p[-1].any() or p[:, 0].any() or p[:, -1].any())
 
     def limit(self, x: float, y: float, radius: float) -> None:
         """The vehicle is within radius of (x, y). When that leaves no position of the grid although the
@@ -227,9 +251,10 @@ class Whereabouts:
         np.add.at(diff, (t[:, 3], t[:, 1]), 1)
         return diff.cumsum(axis=0).cumsum(axis=1)[:TILES[1], :TILES[0]] > 0
 
-    def searched(self, tiles: np.ndarray) -> None:
+    def searched(self, tiles: np.ndarray, regrow_m: float = 0.0) -> None:
         """The vehicle was not found in these image tiles: it is at none of the positions whose whole
-        image footprint lies inside them."""
+        image footprint lies inside them. regrow_m: that was so as far back as the vehicle can drive
+        this far: it may have come back into what was ruled out, that far from what was not."""
         s = np.zeros((TILES[1] + 1, TILES[0] + 1), int)
         s[1:, 1:] = tiles.astype(int).cumsum(axis=0).cumsum(axis=1)
         idx = self._candidates()
@@ -238,6 +263,7 @@ class Whereabouts:
         area = (t[:, 1] - t[:, 0]) * (t[:, 3] - t[:, 2])
         flat = self.possible.ravel()  # a view: clears self.possible
         flat[idx[covered == area]] = False
+        self._grow(int(np.ceil(regrow_m / CELL_M)))
 
 
 def tile_boxes(width: int, height: int, tiles: np.ndarray) -> list[Box]:
