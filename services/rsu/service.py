@@ -9,7 +9,10 @@ with backoff while the RSU keeps serving its sessions, and stamps each frame wit
 Idle while no bus is in session: frames arrive and are dropped undecoded. A bus's Approach (or, for an
 RSU started late, the answer to a session query) adds its code bag to the pipeline; the RSU then
 detects only those tags and publishes one PoseFix per bus per frame, stamped with the frame's capture
-time. Leave, or the bus's liveliness token vanishing, ends the session. RsuStatus every second, with
+time. An acquisition search (for a bus not yet found) is run after its frame; while another bus is tracked,
+a batch of detection jobs at a time between frames, so that it delays the next frame's tracked buses by
+one batch at most; its fix is stamped with the capture time of the frame it searched. Leave, or the bus's liveliness token vanishing,
+ends the session. RsuStatus every second, with
 the host's clock (toptag.hostclock) and what the buses think of this RSU (their RsuDiagnosis on
 keys.rsu_diagnosis: its time offset, and whether its camera is flagged for drift).
 """
@@ -50,6 +53,7 @@ from toptag.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 
+SEARCH_STARVED_FRAMES = 1  # a deferred search runs a batch after this many frames, though a newer one waits
 DIAGNOSIS_SHOWN_S = 10.0  # a bus's diagnosis of this RSU is shown in RsuStatus this long after it came
 
 
@@ -110,6 +114,9 @@ class RsuService:
         self._frames = (latest_receiver(session, keys.frame(self.rsu_id), Frame, self.msg_counters, log)
                         if source is None else None)
         self._bad_logged = 0
+        self._search_frame = None  # (processing start, clock, seq, modes) of the frame whose search is deferred
+        self._arrivals_taken = 0  # frames arrived when the loop last took one (_frame_waiting)
+        self._frames_before_search = 0  # frames processed since the deferred search last ran
         self._watch = watch_buses(session, intersection,
                                   on_appear=lambda bus: self._changes.put(("appear", bus)),
                                   on_vanish=lambda bus: self._changes.put(("leave", bus, "liveliness lost")),
@@ -238,17 +245,11 @@ class RsuService:
 
         t0 = time.perf_counter_ns()
         clock = clock or clock_to_message(self.clock.current())  # the clock of the capture stamp
-        published = []
-
-        def publish(vr) -> None:
-            """A bus's fix goes out as soon as the pipeline has it (a tracked bus's before any search)."""
-            if vr.fix is not None and vr.vehicle_id in self._fix_pubs:
-                self._fix_pubs[vr.vehicle_id].put(fix_to_message(
-                    vr.fix, vr.vehicle_id, self.intersection, time.time_ns(), time.perf_counter_ns() - t0, clock))
-                published.append(vr.vehicle_id)
-
+        publish, published = self._publisher(t0, clock)
         try:
-            result = self.pipeline.process(checked, capture_time_ns, seq, on_vehicle=publish)
+            # A due search is only begun here, and run between frames (continue_search): never before the
+            # next frame's tracked buses.
+            result = self.pipeline.process(checked, capture_time_ns, seq, on_vehicle=publish, defer_search=True)
         except ProtocolError as e:
             self._bad_frame(str(e), e.reason)
             return
@@ -258,9 +259,58 @@ class RsuService:
         c.fixes_published += len(published)
         c.frames_with_fix += bool(published)
         self._detections_pub.put(self.detections(capture_time_ns, seq, result, processing_ns))
+        if result.search_deferred:
+            self._search_frame = (t0, clock, seq, {bus: vr.mode for bus, vr in result.vehicles.items()})
+        elif self.pipeline.search_pending:
+            self._frames_before_search += 1
 
-    def detections(self, capture_time_ns: int, seq: int, result, processing_ns: int) -> TagDetections:
-        """The tags found in this frame, corners as observed (for a view to draw over the image)."""
+    def _publisher(self, t0: int, clock):
+        """(publish, published): publish(vr) sends a bus's fix as soon as the pipeline has it, its processing
+        counted from t0 (the start of its frame's processing); published lists the buses sent."""
+        published = []
+
+        def publish(vr) -> None:
+            if vr.fix is not None and vr.vehicle_id in self._fix_pubs:
+                self._fix_pubs[vr.vehicle_id].put(fix_to_message(
+                    vr.fix, vr.vehicle_id, self.intersection, time.time_ns(), time.perf_counter_ns() - t0, clock))
+                published.append(vr.vehicle_id)
+
+        return publish, published
+
+    def continue_search(self) -> None:
+        """Run the deferred search until a newer frame waits; when it ends, publish its fixes and its frame's
+        detections again with the searched buses' modes (its processing counted from the frame's start:
+        the frames tracked in between included)."""
+        t0, clock, seq, modes = self._search_frame
+        publish, published = self._publisher(t0, clock)
+        self._frames_before_search = 0
+        try:
+            result = self.pipeline.continue_search(self._tracked_frame_waiting, on_vehicle=publish)
+        except Exception as e:  # a bug in one search must not stop the RSU, nor leave it searching forever
+            log.exception("acquisition search of frame %s failed: %s", seq, e)
+            self.pipeline.drop_search()
+            return
+        if result is None:
+            return
+        self.counters.fixes_published += len(published)
+        self.counters.frames_with_fix += bool(published)
+        self._detections_pub.put(self.detections(result.t_ns, seq, result, time.perf_counter_ns() - t0, modes))
+
+    def _frame_waiting(self) -> bool:
+        """Has a newer frame come since the loop last took one?"""
+        return self._arrivals() != self._arrivals_taken
+
+    def _tracked_frame_waiting(self) -> bool:
+        """Does a newer frame wait with a tracked bus in it (whose fix must not wait for a search)?"""
+        return self.pipeline.tracking and self._frame_waiting()
+
+    def _arrivals(self) -> int:
+        return self._frames.arrived if self.source is None else self.source.stats().frames_read
+
+    def detections(self, capture_time_ns: int, seq: int, result, processing_ns: int,
+                   modes: dict[str, str] | None = None) -> TagDetections:
+        """The tags found in this frame, corners as observed (for a view to draw over the image). modes: the
+        frame's other buses' modes (a deferred search's result has only the buses it sought)."""
         tags = []
         for bus, vr in result.vehicles.items():
             used = set(vr.solution.tags) if vr.solution is not None and vr.solution.ok else set()
@@ -270,7 +320,8 @@ class RsuService:
                                         corners=[(float(u), float(v)) for u, v in corners]))
         return TagDetections(rsu_id=self.rsu_id, capture_time_ns=capture_time_ns, frame_seq=seq,
                              width=self.camera.width, height=self.camera.height, tags=tags,
-                             modes={bus: vr.mode for bus, vr in result.vehicles.items()}, processing_ns=processing_ns)
+                             modes={**(modes or {}), **{bus: vr.mode for bus, vr in result.vehicles.items()}},
+                             processing_ns=processing_ns)
 
     def status(self) -> RsuStatus:
         c = self.counters
@@ -310,10 +361,18 @@ class RsuService:
         last = time.monotonic()
         while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):
             self._apply_changes()
-            if self.source is None:
-                frame, handle = self._frames.recv(timeout=0.05), self.handle_frame
+            frame = None
+            # The deferred search goes on unless a newer frame with a tracked bus waits (and then a batch of it
+            # between frames at least, however busy: an unfound bus is acquired, later).
+            if self.pipeline.search_pending and (not self._tracked_frame_waiting()
+                                                 or self._frames_before_search >= SEARCH_STARVED_FRAMES):
+                self.continue_search()
             else:
-                frame, handle = self.source.get(timeout=0.05), self.handle_captured
+                if self.source is None:
+                    frame, handle = self._frames.recv(timeout=0.05), self.handle_frame
+                else:
+                    frame, handle = self.source.get(timeout=0.05), self.handle_captured
+                self._arrivals_taken = self._arrivals()
             now = time.monotonic()
             if self._sessions:
                 self.counters.active_s += now - last
