@@ -527,9 +527,9 @@ def test_a_step_within_the_calibration_is_flagged_against_the_rsus_own_past():
 
 
 def test_a_change_flag_needs_the_suspect_to_explain_the_others_changes():
-    """The change test's false flag: a turned camera (rsu-se) pulled the filter and moved the others'
-    deviations; after it left the window a healthy RSU (rsu-ne), whose fixes then seemed shifted against
-    rsu-sw and rsu-nw, was flagged for a change. rsu-se's own change, remembered from earlier in the pass,
+    """A turned camera (rsu-se) moves the others' deviations by a share of its turn; once it has left the
+    window a healthy RSU (rsu-ne), whose fixes then seem shifted against rsu-sw and rsu-nw, must not be
+    flagged for a change. rsu-se's own change, remembered from earlier in the pass,
     is not explained by rsu-ne's turning (which would move it by a third of rsu-ne's change at most), so
     rsu-ne is not flagged; without rsu-se's record it is (the case is one the change test decides)."""
     from toptag.fusion.trust import RsuRecord, _add_past

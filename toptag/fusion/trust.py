@@ -347,8 +347,8 @@ class DriftRule:
         where its evidence overlapped the suspect's in time, and not at all where it did not: by
         -lambda Delta / k, lambda in [0, 1]. So each other unflagged RSU with a long run, in view now or
         seen earlier in this pass, has its own change less the best such share at most 1 / isolation_ratio
-        as significant as the suspect's change. Without it, a healthy RSU that saw the filter pulled by a
-        turned camera (after the turned one had left the window) was flagged once in 48 runs."""
+        as significant as the suspect's change. A healthy RSU whose deviation a turned one moved (the turned
+        one out of the window now) is not flagged for it: the turned one's change is not explained."""
         live = {k: x for k, x in records.items() if x.m is not None and not x.flagged}
         for k, o in live.items():
             if k == rsu or o.current is None:
