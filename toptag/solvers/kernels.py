@@ -544,3 +544,106 @@ def planar_statistics(J4, sigma, sigma_h):
     n = m // 2
     height_rms = sigma_h * math.sqrt(ss / n) if n else math.nan
     return N_inv, cov, height_rms
+
+
+@compiled
+def level_normal(T, J_px, r_px, row_w, prior2, sigma):
+    """The level fit's normal equations at a point (level.LevelProblem._normal): the whitened Jacobian
+    Jw = T·J_px / sigma (m, n_p), the inverse of H = Jwᵀ D² Jw + diag(prior2) (D: the row weights; all-inf
+    where H does not determine p), the fit's degrees of freedom Σ D² − tr(H⁻¹ Jwᵀ D² Jw) (0 where not
+    determined) and the weighted whitened residuals D·T·r_px (m,)."""
+    m, n_p = J_px.shape
+    Jw = np.zeros((m, n_p))
+    rw = np.zeros(m)
+    for i in range(m):
+        acc = 0.0
+        for k in range(m):
+            t = T[i, k]
+            acc += t * r_px[k]
+            for j in range(n_p):
+                Jw[i, j] += t * J_px[k, j]
+        rw[i] = row_w[i] * acc
+        for j in range(n_p):
+            Jw[i, j] /= sigma
+    JtD2J = np.zeros((n_p, n_p))
+    d2_sum = 0.0
+    for i in range(m):
+        d2 = row_w[i] * row_w[i]
+        d2_sum += d2
+        for a in range(n_p):
+            wa = Jw[i, a] * d2
+            for b in range(n_p):
+                JtD2J[a, b] += wa * Jw[i, b]
+    H = JtD2J.copy()
+    for a in range(n_p):
+        H[a, a] += prior2[a]
+    H_inv = np.empty((n_p, n_p))
+    _safe_inverse_into(H, H_inv)
+    finite = True
+    trace = 0.0
+    for a in range(n_p):
+        for b in range(n_p):
+            finite = finite and math.isfinite(H_inv[a, b])
+            trace += H_inv[a, b] * JtD2J[b, a]
+    dof = d2_sum - trace if finite else 0.0
+    return Jw, H_inv, dof, rw, finite
+
+
+@compiled
+def level_covariance(T, J_px, Jw, H_inv, finite, row_w, prior2, noise2, sigma, outward, in_cam, bias2):
+    """The level fit's sandwich covariance (level.LevelProblem.statistics) from level_normal's Jw, H_inv:
+    H⁻¹ (noise2·Jwᵀ D⁴ Jw + diag(prior2)) H⁻¹, plus the detector's shared corner errors (bias2: the squared
+    sigmas of a tag's outward edge shift, the camera's common one and the image shift; outward (tags, 8):
+    each tag's raw pixel pattern of its edges moved outward; in_cam (tags, cams): which camera holds it),
+    carried through the fit's response H⁻¹ Jwᵀ D² T / sigma to raw pixels. Also each unknown's
+    J_px H⁻¹ column sum of squares times its prior precision (the residual a one-sigma prior error leaves)."""
+    m, n_p = J_px.shape
+    B = np.zeros((n_p, n_p))
+    for i in range(m):
+        d4 = noise2 * (row_w[i] * row_w[i]) ** 2
+        for a in range(n_p):
+            wa = Jw[i, a] * d4
+            for b in range(n_p):
+                B[a, b] += wa * Jw[i, b]
+    for a in range(n_p):
+        B[a, a] += prior2[a]
+    HB = H_inv @ B
+    cov = HB @ H_inv
+    if bias2[0] != 0.0 or bias2[1] != 0.0 or bias2[2] != 0.0:
+        A = np.empty((n_p, m))
+        for a in range(n_p):
+            for i in range(m):
+                A[a, i] = Jw[i, a] * row_w[i] * row_w[i]
+        gain = (H_inv @ A) @ T
+        n_t, n_c = outward.shape[0], in_cam.shape[1]
+        G_tag = np.zeros((n_p, n_t))
+        G_img = np.zeros((n_p, 2, n_t))
+        for a in range(n_p):
+            for t in range(n_t):
+                for k in range(8):
+                    g = gain[a, 8 * t + k] / sigma
+                    G_tag[a, t] += g * outward[t, k]
+                    G_img[a, k % 2, t] += g
+        G_cam = G_tag @ in_cam
+        G_img_cam = np.empty((n_p, 2 * n_c))
+        for a in range(n_p):
+            for axis in range(2):
+                for c in range(n_c):
+                    acc = 0.0
+                    for t in range(n_t):
+                        acc += G_img[a, axis, t] * in_cam[t, c]
+                    G_img_cam[a, axis * n_c + c] = acc
+        cov += bias2[0] * (G_tag @ G_tag.T) + bias2[1] * (G_cam @ G_cam.T) + bias2[2] * (G_img_cam @ G_img_cam.T)
+    per = np.empty(n_p)
+    for j in range(n_p):
+        if not finite:
+            per[j] = math.inf * prior2[j]
+            continue
+        acc = 0.0
+        for i in range(m):
+            s = 0.0
+            for k in range(n_p):
+                s += J_px[i, k] * H_inv[k, j]
+            acc += s * s
+        per[j] = acc * prior2[j]
+    return cov, per

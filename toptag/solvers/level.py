@@ -178,7 +178,7 @@ class LevelProblem:
                  turn_ratio: float | None = TURN_RATIO, unit_weights=None, whitener: np.ndarray | None = None,
                  bias: DetectorBias = NO_BIAS):
         self.c, self.h, self.sigma_h, self.calib, self.bias = c, float(h), float(sigma_h), calib, bias
-        self.T = edge_whitener(c.pixels, turn_ratio) if whitener is None else whitener
+        self.T = np.ascontiguousarray(edge_whitener(c.pixels, turn_ratio) if whitener is None else whitener)
         self.row_w = (np.ones(2 * c.n) if unit_weights is None
                       else np.repeat(np.asarray(unit_weights, dtype=float)[c.unit_of], 2))
         self.zfree = self.sigma_h > 0
@@ -193,7 +193,7 @@ class LevelProblem:
         if self.n_c:
             prior[self.n_pose:] = np.tile(1.0 / calib.sigmas, len(self.cams))
         self.prior = prior
-        self.prior_rows = np.flatnonzero(prior > 0)
+        self.prior2 = prior ** 2
         self._memo = None
         self._evaluated = None  # (p's bytes, pixels(p)) of the last minimise's result
         if self.n_c:
@@ -254,22 +254,7 @@ class LevelProblem:
         cam_ids = sorted({u.camera.id for u in c.units})
         cam = [cam_ids.index(c.units[u].camera.id) for u in c.unit_of[::4].tolist()]
         in_cam = (np.array(cam)[:, None] == np.arange(len(cam_ids))[None, :]).astype(float)
-        return _outward(c).reshape(-1, 8), in_cam
-
-    def _edge_bias_cov(self, H_inv, Jw, d2, sigma) -> np.ndarray:
-        """Covariance of p from the detector's shared corner errors (DetectorBias): the weighted fit's
-        response to each tag's outward edge shift, to every camera's common one and to its image shift."""
-        b = self.bias
-        if b == NO_BIAS:
-            return 0.0
-        gain = H_inv @ (Jw.T * d2) @ self.T / sigma  # p's response to a raw pixel residual change
-        outward, in_cam = self._bias_patterns
-        g = gain.reshape(len(gain), len(outward), 8)  # (n_p, tags, 8)
-        G_tag = (g * outward).sum(axis=2)  # (n_p, tags)
-        G_cam = G_tag @ in_cam  # each camera's common outward shift
-        G_img = (g.reshape(len(gain), len(outward), 4, 2).sum(axis=2).transpose(0, 2, 1) @ in_cam).reshape(len(gain), -1)
-        return (b.edge_tag ** 2 * G_tag @ G_tag.T + b.edge_common ** 2 * G_cam @ G_cam.T
-                + b.image_shift ** 2 * G_img @ G_img.T)
+        return np.ascontiguousarray(_outward(c).reshape(-1, 8)), in_cam
 
     def minimise(self, p0, sigma: float) -> LmResult:
         """The least-squares p from p0, the pixels weighted with sigma."""
@@ -310,16 +295,10 @@ class LevelProblem:
         if self._memo is not None and self._memo[0] == key:
             return self._memo[1]
         r_px, J_px, ok = self.pixels(p)
-        Jw = self.T @ J_px / sigma  # whitened, unweighted
-        d2 = self.row_w ** 2
-        JtD2J = Jw.T @ (d2[:, None] * Jw)
-        H = JtD2J.copy()
-        H[self.prior_rows, self.prior_rows] += self.prior[self.prior_rows] ** 2
-        H_inv = safe_inverse(H)
-        finite = bool(np.all(np.isfinite(H_inv)))
-        dof = float(np.sum(d2) - np.trace(H_inv @ JtD2J)) if finite else 0.0
-        rw = self.row_w * (self.T @ r_px)
-        out = (r_px, J_px, ok, Jw, d2, H_inv, dof, rw)
+        J_px = np.ascontiguousarray(J_px, dtype=float)
+        Jw, H_inv, dof, rw, finite = kernels.level_normal(self.T, J_px, np.ascontiguousarray(r_px, dtype=float),
+                                                          self.row_w, self.prior2, float(sigma))
+        out = (r_px, J_px, ok, Jw, finite, H_inv, dof, rw)
         self._memo = (key, out)
         return out
 
@@ -330,19 +309,24 @@ class LevelProblem:
 
     def statistics(self, p, sigma: float, sigma_noise: float | None = None) -> "LevelStats":
         """At p, weighted with sigma; the covariance under whitened pixel noise sigma_noise (default sigma)."""
-        r_px, J_px, ok, Jw, d2, H_inv, dof, rw = self._normal(p, sigma)
-        P2 = np.diag(self.prior ** 2)
+        r_px, J_px, ok, Jw, finite, H_inv, dof, rw = self._normal(p, sigma)
         noise2 = 1.0 if sigma_noise is None else (sigma_noise / sigma) ** 2
-        B = noise2 * (Jw.T @ ((d2 ** 2)[:, None] * Jw)) + P2
-        cov = H_inv @ B @ H_inv + self._edge_bias_cov(H_inv, Jw, d2, sigma)
-        finite = bool(np.all(np.isfinite(H_inv)))
-        # Residual a one-sigma prior error (roof height, calibration) leaves: p moves by -H⁻¹P²·delta.
+        # The sandwich under that noise, plus the detector's shared corner errors (DetectorBias: the
+        # weighted fit's response to each tag's outward edge shift, to every camera's common one and to
+        # its image shift); per unknown, the residual a one-sigma prior error (roof height, calibration)
+        # leaves: p moves by -H⁻¹P²·delta.
+        b = self.bias
+        outward, in_cam = self._bias_patterns if b != NO_BIAS else (_NO_PATTERN, _NO_PATTERN)
+        cov, per = kernels.level_covariance(self.T, J_px, Jw, H_inv, finite, self.row_w, self.prior2, noise2,
+                                            float(sigma), outward, in_cam,
+                                            np.array([b.edge_tag, b.edge_common, b.image_shift]) ** 2)
         n = max(self.c.n, 1)
-        M = J_px @ H_inv if finite else np.full_like(J_px, np.inf)
-        per = np.sum(M * M, axis=0) * self.prior ** 2
         height2 = float(per[3]) if self.zfree else 0.0
         return LevelStats(r_px, J_px, rw, cov, H_inv, dof, math.sqrt(height2 / n),
                           math.sqrt(float(per[self.n_pose:].sum()) / n), ok)
+
+
+_NO_PATTERN = np.zeros((0, 8))  # level_covariance's outward and in_cam when there is no DetectorBias
 
 
 def _outward(c: Corners) -> np.ndarray:
