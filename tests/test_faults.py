@@ -113,10 +113,12 @@ def test_the_bundled_faults_scenario_loads():
     from toptag.fusion.filter import FilterConfig
     from toptag.settings import load_settings
     f = load_settings(sc.bus_config, BusSettings).filter
-    assert (f.drift_min_pos_m, f.drift_min_yaw_deg) == (0.03, 0.1) == \
+    assert (f.drift_min_pos_m, f.drift_min_yaw_deg) == (0.10, 0.3) == \
         (FilterConfig().drift_min_pos_m, FilterConfig().drift_min_yaw_deg)
     assert (f.drift_window_s, f.drift_min_fixes) == (30.0, 6.0)
-    assert load_scenario(DEMO / "scenario-drift02.json").bus_config == sc.bus_config
+    # the 0.2 deg scenario's buses: the same, with the 3 cm / 0.1 deg box a 0.2 deg turn needs
+    f02 = load_settings(load_scenario(DEMO / "scenario-drift02.json").bus_config, BusSettings).filter
+    assert (f02.drift_min_pos_m, f02.drift_min_yaw_deg, f02.drift_window_s) == (0.03, 0.1, 30.0)
     assert not w.faults[w.rsu_ids.index("rsu-ne")].clock_disciplined
     assert w.faults[w.rsu_ids.index("rsu-se")] == RsuFault()
 
