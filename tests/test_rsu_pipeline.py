@@ -38,8 +38,8 @@ def run(pipeline, vehicle_id, frames):
         fix = res.vehicles[vehicle_id].fix
         assert (fix is not None) == (sol is not None and sol.ok)
         if fix is not None:  # the solution as a fix of this camera, for this frame
-            assert (fix.t_ns, fix.source, fix.seq, fix.x, fix.yaw, fix.method) == \
-                (t_ns, pipeline.camera.id, seq, sol.x, sol.yaw, sol.method)
+            assert (fix.t_ns, fix.source, fix.seq, fix.x, fix.yaw, fix.method, fix.calib_id) == \
+                (t_ns, pipeline.camera.id, seq, sol.x, sol.yaw, sol.method, pipeline.camera.calibration_id)
         err = np.hypot(sol.x - truth[0], sol.y - truth[1]) if sol is not None and sol.ok else None
         out.append((res, visible, err))
     return out

@@ -61,14 +61,15 @@ class Fix:
 
     @classmethod
     def from_solution(cls, solution: PoseSolution, t_ns: int, source: str, seq: int | None = None,
-                      calib_cov: np.ndarray | None = None) -> Fix:
+                      calib_cov: np.ndarray | None = None, calib_id: str | None = None) -> Fix:
         """The fix a solver's (ok) solution of the frame captured at t_ns gives; `calib_cov`: the share
-        of its covariance that the cameras' calibration added."""
+        of its covariance that the cameras' calibration added; `calib_id`: which calibration of the camera."""
         if not solution.ok:
             raise ValueError(f"no fix from a failed solution: {solution.error}")
         return cls(t_ns=t_ns, x=solution.x, y=solution.y, yaw=solution.yaw, cov=solution.covariance,
                    source=source, seq=seq, z=solution.z, method=solution.method, tags=tuple(solution.tags),
-                   rms_px=float(solution.rms_px), ambiguous=bool(solution.ambiguous), calib_cov=calib_cov)
+                   rms_px=float(solution.rms_px), ambiguous=bool(solution.ambiguous), calib_cov=calib_cov,
+                   calib_id=calib_id)
 
     @property
     def key(self) -> tuple:

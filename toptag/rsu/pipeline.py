@@ -228,6 +228,7 @@ class RsuPipeline:
 
     def __init__(self, camera: Camera, settings: PipelineSettings | None = None):
         self.camera = camera
+        self._calibration_id = camera.calibration_id  # every fix names it: a bus forgets a recalibrated camera's past
         self.settings = settings or PipelineSettings()
         self.vehicles: dict[str, Vehicle] = {}
         self.tracks: dict[str, VehicleTrack] = {}
@@ -481,7 +482,7 @@ class RsuPipeline:
         if sol is not None and sol.ok:
             # never more certain than the camera's calibration, weighed as the solve weighed the corners
             calib = with_calibration(vehicle, obs, sol, self.settings.turn_ratio)
-            fix = Fix.from_solution(sol, t_ns, self.camera.id, seq, calib)
+            fix = Fix.from_solution(sol, t_ns, self.camera.id, seq, calib, self._calibration_id)
             self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
             self._whereabouts.pop(vid, None)
             self._report_misses.pop(vid, None)
