@@ -176,6 +176,14 @@ class _Search:
     found: list = field(default_factory=list)  # detections of jobs[:len(found)]
     detect_s: float = 0.0
 
+    @property
+    def pixels(self) -> int:
+        return sum(j.box.area for j in self.jobs)
+
+    @property
+    def cost_px(self) -> float:
+        return sum(j.cost for j in self.jobs)
+
 
 # The contrast floor of acquisition's decimated bands (PipelineSettings.acquire_min_contrast) in grey
 # levels: at least AprilTag's own default; at most 20, a sixth of a default-lit tag's contrast (a bright
@@ -381,8 +389,8 @@ class RsuPipeline:
             jobs = self._contrast_floor(image(), jobs) if jobs else []
             search = _Search(t_ns, seq, image() if jobs else None, list(unfound), tiles,
                              sorted(jobs, key=lambda j: -j.cost), pool)
-            result.pixels_searched += sum(j.box.area for j in jobs)
-            result.search_cost_px = sum(j.cost for j in jobs)
+            result.pixels_searched += search.pixels
+            result.search_cost_px = search.cost_px
             if defer_search and jobs:
                 self._search, result.search_deferred = search, True
             else:
@@ -430,8 +438,7 @@ class RsuPipeline:
             return None
         self._search = None
         t0 = time.perf_counter()
-        result = FrameResult(s.t_ns, acquired=True, pixels_searched=sum(j.box.area for j in s.jobs),
-                             search_cost_px=sum(j.cost for j in s.jobs))
+        result = FrameResult(s.t_ns, acquired=True, pixels_searched=s.pixels, search_cost_px=s.cost_px)
         observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
         for vid in s.vehicle_ids:
             if vid not in self.vehicles or self.tracks[vid].found:
