@@ -98,18 +98,22 @@ def test_a_crop_is_detected_in_place_as_its_copy_is_and_never_written_to():
 
 def test_the_unrefined_pass_runs_only_when_an_expected_tag_is_missed(monkeypatch):
     """A crop around tags found at a coarser level: the second decode pass (without edge refinement, to
-    find what the first misses) runs only if the first pass missed one of the expected tags."""
+    find what the first misses) runs only if the first pass missed one of the expected tags, and
+    without edge refinement as the C library reads it (pupil's own view of the detector struct)."""
     cam, (a, pa), (b, pb), img = two_buses_frame("tag25h9")
     det = TagDetector(("tag36h11", "tag25h9"))
     calls = []
     real = TagDetector._detect
-    monkeypatch.setattr(TagDetector, "_detect", lambda self, im: calls.append(1) or real(self, im))
+    monkeypatch.setattr(TagDetector, "_detect", lambda self, im: calls.append(
+        self._detector.tag_detector_ptr.contents.refine_edges) or real(self, im))
     try:
+        assert det._detector.tag_detector_ptr.contents.decode_sharpening == det.settings.decode_sharpening
         found = det.detect_raw(img, expected={("tag36h11", 3), ("tag25h9", 5)})
-        assert len(calls) == 1 and {("tag36h11", 3), ("tag25h9", 5)} <= {(d.family, d.tag_id) for d in found}
+        assert calls == [1] and {("tag36h11", 3), ("tag25h9", 5)} <= {(d.family, d.tag_id) for d in found}
         calls.clear()
         again = det.detect_raw(img, expected={("tag36h11", 3), ("tag36h11", 4)})  # 4 is on no roof
-        assert len(calls) == 2 and len(again) == len(found)
+        assert calls == [1, 0] and len(again) == len(found)
+        assert det._detector.tag_detector_ptr.contents.refine_edges == 1
         calls.clear()
         det.detect_raw(img, unrefined_pass=False, expected={("tag36h11", 4)})
         assert len(calls) == 1

@@ -125,7 +125,10 @@ class TagDetector:
         self._detector = d
         TagDetector._alive.append(self)
         self._image_type = _ImageU8
-        self._thresholds = ctypes.cast(d.tag_detector_ptr, ctypes.POINTER(_DetectorHead)).contents.qtp
+        # One view of the C detector for every field set here (pupil's own struct stops before the quad
+        # thresholds).
+        self._head = ctypes.cast(d.tag_detector_ptr, ctypes.POINTER(_DetectorHead)).contents
+        self._thresholds = self._head.qtp
         if (self._thresholds.max_nmaxima, self._thresholds.max_line_fit_mse) != (10, 10.0):
             self.close()  # not AprilTag 3's defaults where they should be: another struct layout
             raise RuntimeError("pupil-apriltags' C detector is not laid out as AprilTag 3's")
@@ -136,7 +139,7 @@ class TagDetector:
         d.libc.apriltag_detections_destroy.restype = None
         # pupil-apriltags 1.0.4 passes decode_sharpening through int(), turning 0.25 into 0: set it as the
         # C library expects (a double).
-        d.tag_detector_ptr.contents.decode_sharpening = float(s.decode_sharpening)
+        self._head.decode_sharpening = float(s.decode_sharpening)
         for family in others:
             create = getattr(d.libc, f"{family}_create")
             create.restype = ctypes.POINTER(_ApriltagFamily)
@@ -206,12 +209,11 @@ class TagDetector:
             if second and expected is not None:
                 second = not set(expected) <= {(d.family, d.tag_id) for d in out}
             if s.refine_edges and second and s.quad_decimate == 1.0:
-                ptr = self._detector.tag_detector_ptr.contents
-                ptr.refine_edges = 0
+                self._head.refine_edges = 0
                 try:
                     extra = self._decoded(img, upsample, shift)
                 finally:
-                    ptr.refine_edges = 1
+                    self._head.refine_edges = 1
                 out += [d for d in extra if not any(_same_tag(d, o) for o in out)]
         finally:
             self._thresholds.min_white_black_diff = self._min_contrast
