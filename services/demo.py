@@ -110,10 +110,10 @@ def _run(args: argparse.Namespace, scenario_path: Path, scenario, stop: threadin
         group.stop()
         return 1
     from protocol.transport import open_session
-    from services.monitor import Monitor, write_report
+    from services.monitor import Monitor, ViewCoverage, write_report
 
     session = open_session(mode="client", connect=[endpoint])
-    monitor = Monitor(session)
+    monitor = Monitor(session, in_view=ViewCoverage(scenario))
     rsu_settings = ["--config", str(scenario.rsu_config)] if scenario.rsu_config else []
     rsus = [group.start(cam.stem, TOPTAG + ["rsu", "--camera", str(cam), "--intersection", scenario.intersection_id]
                         + rsu_settings + client) for cam in scenario.camera_paths()]

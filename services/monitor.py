@@ -16,6 +16,7 @@ import threading
 import time
 from collections import defaultdict, deque
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -25,6 +26,9 @@ from protocol.messages import (Approach, FusedPose, FusionHealth, GroundTruth, L
 from protocol.transport import MessageCounters, subscribe_messages
 from protocol.transport.runner import add_service_arguments, run_service
 from toptag.units import ms_from_ns, ns_from_s, s_from_ns
+
+if TYPE_CHECKING:
+    from sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
 TRUTH_KEEP_S = 30.0
@@ -36,12 +40,14 @@ class TruthTrack:
     def __init__(self):
         self.t: list[int] = []
         self.xyyaw: list[tuple[float, float, float]] = []
+        self.z: float | None = None  # the roof's height, as last heard (it changes by a bounce only)
 
     def add(self, m: GroundTruth) -> None:
         if self.t and m.t_ns <= self.t[-1]:
             return
         self.t.append(m.t_ns)
         self.xyyaw.append((m.x, m.y, m.yaw))
+        self.z = m.z
         if s_from_ns(self.t[-1] - self.t[0]) > 2 * TRUTH_KEEP_S:
             cut = bisect.bisect_left(self.t, self.t[-1] - ns_from_s(TRUTH_KEEP_S))
             del self.t[:cut], self.xyyaw[:cut]
@@ -117,12 +123,40 @@ class BusScore:
         self.in_session = False
         self.session_fused = 0
         self.session_fused_ok = 0
+        # ... of which, with the truth at their time, two of the bus's tags in some camera's image (only
+        # with a ViewCoverage: the simulator's cameras), and how many of those said ok.
+        self.session_in_view = 0
+        self.session_in_view_ok = 0
         self.pending_fixes: list[tuple[int, float, float]] = []  # awaiting truth at their time
-        self.pending_fused: list[tuple[int, float, float, str | None]] = []
+        self.pending_fused: list[tuple[int, float, float, str | None, float, bool]] = []
+
+
+class ViewCoverage:
+    """Whether a bus, at its true pose, has two of its tags in some camera's image (sim.sampling.in_some_view,
+    the scenario's cameras): the condition under which an RSU can fix it at all, and so where "fused ok"
+    measures the system rather than where its cameras are."""
+
+    def __init__(self, scenario: "Scenario"):
+        from sim.world import World
+
+        world = World(scenario)
+        self.cameras = world.cameras
+        self.vehicles = {b.id: b.vehicle for b in world.buses}
+
+    def __call__(self, bus_id: str, x: float, y: float, yaw: float, z: float | None) -> bool | None:
+        """None for a bus the scenario does not have."""
+        from sim.render import PlacedVehicle
+        from sim.sampling import in_some_view
+
+        vehicle = self.vehicles.get(bus_id)
+        return None if vehicle is None else in_some_view(self.cameras, PlacedVehicle(vehicle, x, y, yaw, z))
 
 
 class Monitor:
-    def __init__(self, session):
+    def __init__(self, session, in_view: Callable[[str, float, float, float, float | None], bool | None] | None = None):
+        """in_view: (bus, x, y, yaw, roof z) -> can a camera see the bus there (a ViewCoverage); with it the
+        summary also tells how often the fused status was ok while in session and in view."""
+        self.in_view = in_view
         self.started = time.monotonic()
         self.first_message: float | None = None  # monotonic time of the first message about a bus
         self.counters = MessageCounters()
@@ -228,7 +262,7 @@ class Monitor:
                 b.session_fused += 1
                 b.session_fused_ok += m.health.status == "ok"
             sigma = math.sqrt(max(m.covariance[0][0], m.covariance[1][1], 0.0))
-            b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status, sigma))
+            b.pending_fused.append((m.t_ns, m.x, m.y, m.health.status, sigma, b.in_session))
 
     def _heard(self) -> None:
         if self.first_message is None:
@@ -250,9 +284,12 @@ class Monitor:
                     keep_f.append((t, x, y))
             b.pending_fixes = keep_f
             keep_u = []
-            for t, x, y, status, sigma in b.pending_fused:
+            for t, x, y, status, sigma, in_session in b.pending_fused:
                 truth = track.at(t)
                 if truth is not None:
+                    if in_session and self.in_view is not None and self.in_view(bus, *truth, track.z):
+                        b.session_in_view += 1
+                        b.session_in_view_ok += status == "ok"
                     if status == "ok":  # a degraded pose says so itself; score what claims to be good
                         err = float(np.hypot(x - truth[0], y - truth[1]))
                         b.fused_err.add(err)
@@ -260,7 +297,7 @@ class Monitor:
                         if sigma <= CONFIDENT_SIGMA_M:
                             b.fused_confident_err.add(err)
                 elif t > newest:
-                    keep_u.append((t, x, y, status, sigma))
+                    keep_u.append((t, x, y, status, sigma, in_session))
             b.pending_fused = keep_u
 
     # ---- outputs --------------------------------------------------------------------------------
@@ -318,14 +355,21 @@ class Monitor:
                     "fused_in_session_samples": b.session_fused,
                     "fused_in_session_ok_fraction": (b.session_fused_ok / b.session_fused if b.session_fused
                                                      else None),
+                    "fused_in_view_samples": b.session_in_view if self.in_view else None,
+                    "fused_in_view_ok_fraction": (b.session_in_view_ok / b.session_in_view if b.session_in_view
+                                                  else None),
                 }
             n_session = sum(b.session_fused for b in self.buses.values())
+            n_view = sum(b.session_in_view for b in self.buses.values())
             totals = {"latency_ms_p50": self.all_latency_ms.pct(50), "latency_ms_p99": self.all_latency_ms.pct(99),
                       "fixes_received": self.all_latency_ms.n,
                       "latency_by_mode": self._latency_by_mode(),
                       "fused_in_session_samples": n_session,
                       "fused_in_session_ok_fraction": (sum(b.session_fused_ok for b in self.buses.values())
-                                                       / n_session if n_session else None)}
+                                                       / n_session if n_session else None),
+                      "fused_in_view_samples": n_view if self.in_view else None,
+                      "fused_in_view_ok_fraction": (sum(b.session_in_view_ok for b in self.buses.values())
+                                                    / n_view if n_view else None)}
         return {"elapsed_s": round(time.monotonic() - self.started, 1), "rsus": rsus, "buses": buses,
                 "all_buses": totals, "rejected_messages": self.counters.get("rejected")}
 

@@ -34,6 +34,12 @@ def visible_tags(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> l
     return seen
 
 
+def in_some_view(cameras, pv: PlacedVehicle, min_tags: int = 2, margin_px: float = 2.0) -> bool:
+    """At least min_tags of the vehicle's tags project whole inside one of the cameras' images: where an
+    RSU can fix it at all (occlusion and the tags' size in pixels not considered)."""
+    return any(len(visible_tags(c, pv, margin_px)) >= min_tags for c in cameras)
+
+
 def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> bool:
     """Every tag's printed plate projects inside the image."""
     return len(visible_tags(camera, pv, margin_px)) == len(pv.vehicle.tag_ids)

@@ -46,6 +46,9 @@ def test_bench_demo_prints_and_writes_every_figure(tmp_path):
         assert all(0 <= m[part][0] <= m[part][1] for part in ("processing", "transit")), m
     ok = f["fused_ok_in_session"]
     assert ok["fraction"] is None or 0 <= ok["fraction"] <= 1
+    seen = f["fused_ok_in_view"]  # the samples in session with the bus in some camera's view, of those scored
+    assert seen["samples"] is not None and seen["samples"] <= ok["samples"], (seen, ok)
+    assert seen["fraction"] is None or 0 <= seen["fraction"] <= 1
     assert all(code == 0 for code in f["exit_codes"].values()), f["exit_codes"]
     assert "fix latency p50" in p.stdout and "cores in all" in p.stdout and "fused status ok" in p.stdout
 
