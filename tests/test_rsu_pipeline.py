@@ -196,6 +196,31 @@ def test_another_rsus_fix_replaces_acquisition(bus_pass):
     assert res.vehicles[bus.id].mode == "out_of_view" and res.pixels_searched == 0 and not res.acquired
 
 
+def test_peer_fixes_of_one_camera_give_the_hint_a_velocity_and_narrower_crops(bus_pass):
+    """Two fixes of one peer camera 0.1 s apart: the hint predicts the bus's motion, so its crops are far
+    smaller than from one fix (which allows the top speed in any direction) and it is found; the track
+    it starts has that velocity at once. Fixes of two cameras make no velocity (their calibrations differ)."""
+    camera, bus, frames = bus_pass
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    i = shown[len(shown) // 2]
+    (t0, _, a, _), (t1, _, b, _), (t2, img, truth, _) = frames[i - 2], frames[i - 1], frames[i]
+    searched = {}
+    for case, sources in {"one fix": [None, "rsu-ne"], "one camera": ["rsu-ne", "rsu-ne"],
+                          "two cameras": ["rsu-se", "rsu-ne"]}.items():
+        p = RsuPipeline(camera)
+        p.add_vehicle(bus)
+        for t, pose, source in zip((t0, t1), (a, b), sources):
+            if source is not None:
+                p.hint(bus.id, t, *pose[:4], source)
+        res = p.process(img, t2)
+        vr = res.vehicles[bus.id]
+        assert vr.mode == "hinted" and vr.fix is not None and not res.acquired
+        searched[case] = res.pixels_searched
+        assert (p.tracks[bus.id].velocity is not None) == (case == "one camera")
+    assert searched["two cameras"] == searched["one fix"]
+    assert searched["one camera"] < 0.5 * searched["one fix"], searched
+
+
 def test_coarse_position_far_away_waits_instead_of_searching(bus_pass):
     """The bus's own GNSS position (in its Approach) 40 m away: it cannot be in view, nothing is searched;
     a position near the bus lets acquisition run and find it."""
@@ -265,6 +290,51 @@ def test_whereabouts_grow_at_bus_speed_and_lose_what_was_searched_in_vain():
     near.advance(0)
     near.limit(5.0, 5.0, 4.0)  # in the middle of the view: only part of the image can hold it
     assert near.in_view and 0 < near.tile_mask().sum() < everywhere.sum()
+
+
+def test_a_bus_known_beyond_the_grid_is_not_brought_back_into_view_by_a_wider_disc():
+    """A leaving bus: its own tight position is past the camera's grid, so it is beyond it; an older,
+    wider disc (another RSU's fix seconds ago) that reaches beyond the grid too does not contradict that
+    and must not make its whole overlap with the view a place to search. A disc wholly inside the grid
+    that misses every possible position still does (something believed was wrong)."""
+    camera, bus = rsu_camera("sw"), bundled_vehicle("bus_double")
+    grid = ViewGrid.build(camera, bus.height, float(np.hypot(bus.length, bus.width)) / 2)
+    far_x = grid.x0 - 5.0  # west of the grid
+    wb = Whereabouts(grid, speed_mps=10.0)
+    wb.advance(0)
+    wb.limit(far_x, -9.0, 0.5)
+    assert not wb.possible.any() and wb.beyond and not wb.in_view
+    wb.limit(far_x + 18.0, -9.0, 20.0)  # reaches into the view and beyond the grid
+    assert not wb.in_view and wb.beyond
+
+    hidden = Whereabouts(grid, speed_mps=10.0)
+    hidden.advance(0)
+    hidden.limit(5.0, 5.0, 3.0)  # wholly inside the grid: no longer beyond it
+    assert not hidden.beyond
+    hidden.searched(np.ones((12, 16), bool))  # searched in vain (the bus was hidden)
+    assert not hidden.possible.any()
+    hidden.limit(5.0, 5.0, 3.0)  # its position again: it is there after all
+    assert hidden.in_view
+
+
+def test_a_leaving_bus_past_the_view_is_not_searched_for_because_of_an_old_hint(bus_pass):
+    """The bus's own position (tight, with its velocity) is past this camera's view, an RSU fixed it 3 s
+    ago near the view: nothing is searched (the frame is not even decoded). (In the demo's offline replay
+    this was 61 of 196 searches: leaving buses, at 25-48 m.)"""
+    camera, bus, frames = bus_pass
+    t_ns, img, _, _ = frames[0]
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    grid_west = p._whereabouts_at(bus.id, t_ns).grid.x0
+    p._whereabouts.clear()
+    p.hint(bus.id, t_ns - 3_000_000_000, grid_west + 25.0, -9.0, np.pi, bus.height, "rsu-ne")
+    # (with no heading, the report only bounds the search; with one, it is tracked from until it misses)
+    p.coarse_position(bus.id, t_ns, grid_west - 5.0, -9.0, 0.2, velocity=(-7.0, 0.0), velocity_sigma=0.2)
+    decoded = []
+    for k in range(4):
+        res = p.process(lambda: decoded.append(1) or img, t_ns + k * 100_000_000)
+        assert res.vehicles[bus.id].mode == "out_of_view" and not res.acquired
+    assert not decoded
 
 
 def test_tile_boxes_cover_exactly_the_marked_tiles():

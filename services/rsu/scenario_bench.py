@@ -193,7 +193,7 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
                     filters[bus].add_fix(dataclasses.replace(vr.fix, clock_bound_ns=0), arrival_ns=t)
                 for o, p in enumerate(pipelines):
                     if o != r:
-                        p.hint(bus, t, vr.fix.x, vr.fix.y, vr.fix.yaw, vr.fix.z)
+                        p.hint(bus, t, vr.fix.x, vr.fix.y, vr.fix.yaw, vr.fix.z, vr.fix.source)
     per_rsu = {cam.id: tally.figures(duration_s) for cam, tally in zip(world.cameras, tallies)}
     in_view = sum(t.in_view for t in tallies)
     return {"duration_s": duration_s, "rsus": per_rsu,

@@ -149,7 +149,7 @@ class RsuService:
                 self._end_session(change[1], change[2])
             elif kind == "hint":
                 m = change[1]
-                self.pipeline.hint(m.bus_id, m.capture_time_ns, m.x, m.y, m.yaw, m.z)
+                self.pipeline.hint(m.bus_id, m.capture_time_ns, m.x, m.y, m.yaw, m.z, m.rsu_id)
             elif kind in ("appear", "query"):
                 # A bus we have no bag for (we started late or missed its Approach): ask for it.
                 if kind == "query" or change[1] not in self._sessions:

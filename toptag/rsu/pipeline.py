@@ -194,6 +194,9 @@ APRILTAG_MIN_CONTRAST, ACQUIRE_MAX_CONTRAST = 5, 20
 # full resolution would otherwise keep one core waiting. Smaller ones (tracking crops) are not worth
 # the threads' hand-offs.
 _THREADED_JOB_COST = 100_000
+# Peer fixes of one camera this far apart at least make a hint track's velocity (RsuPipeline.hint): the
+# tracker's own frame spacing, whose velocity error TrackSettings.velocity_error_mps bounds.
+HINT_MIN_SPACING_S = 0.08
 
 
 class _DetectorPool:
@@ -242,7 +245,7 @@ class RsuPipeline:
         self.tracks: dict[str, VehicleTrack] = {}
         self._pools: dict[tuple[str, ...], _DetectorPool] = {}
         self._bands: dict[tuple[float, float], list[Band]] = {}
-        self._hints: dict[str, VehicleTrack] = {}
+        self._hints: dict[str, dict[str, VehicleTrack]] = {}  # bus -> the peer camera whose fixes make it -> track
         self._coarse: dict[str, ReportedPosition] = {}
         self._report_misses: dict[str, int] = {}
         self._last_acquire_ns: int | None = None
@@ -291,7 +294,7 @@ class RsuPipeline:
                                                   tags_m=tags, min_tag_px=self.settings.acquire_min_tag_px)
             wb = self._whereabouts[vid] = Whereabouts(self._grids[key], BUS_MAX_SPEED_MPS * SPEED_MARGIN)
         wb.advance(t_ns)
-        c, h = self._coarse.get(vid), self._hints.get(vid)
+        c, h = self._coarse.get(vid), self._newest_hint(vid)
         if c is not None and s_from_ns(abs(t_ns - c.t_ns)) <= self.settings.coarse_max_age_s:
             wb.limit(*c.disc_at(t_ns, BUS_MAX_SPEED_MPS * SPEED_MARGIN))
         if h is not None:
@@ -303,12 +306,30 @@ class RsuPipeline:
         """The farthest a bus can have gone between the two times."""
         return BUS_MAX_SPEED_MPS * SPEED_MARGIN * s_from_ns(abs(t_ns - since_ns))
 
-    def hint(self, vehicle_id: str, t_ns: int, x: float, y: float, yaw: float, z: float) -> None:
-        """A pose of an announced vehicle from elsewhere (another RSU's fix)."""
-        if vehicle_id in self.vehicles:
-            track = VehicleTrack(TrackSettings())
-            track.update(t_ns, x, y, yaw, z)
-            self._hints[vehicle_id] = track
+    def hint(self, vehicle_id: str, t_ns: int, x: float, y: float, yaw: float, z: float,
+             source: str | None = None) -> None:
+        """A pose of an announced vehicle from elsewhere (another RSU's fix; source: that camera's id).
+        The fixes of one source make a track: one at least HINT_MIN_SPACING_S after the last gives it a
+        velocity, so a hinted crop is the bus's predicted motion's margin (~0.5 m at 0.1 s), not the
+        top speed in any direction (2 m). Closer fixes, or fixes of two cameras (whose calibrations differ
+        by up to hint_margin_m), would make a velocity of noise: a closer one is left out while the track
+        has a velocity, else it restarts the track."""
+        if vehicle_id not in self.vehicles:
+            return
+        tracks = self._hints.setdefault(vehicle_id, {})
+        track = tracks.get(source)
+        if track is None or not track.found or t_ns < track.t_ns \
+                or s_from_ns(t_ns - track.t_ns) > self.settings.hint_max_age_s:
+            track = tracks[source] = VehicleTrack(TrackSettings())
+        elif s_from_ns(t_ns - track.t_ns) < HINT_MIN_SPACING_S:
+            if track.velocity is not None:
+                return
+            track.reset()
+        track.update(t_ns, x, y, yaw, z)
+
+    def _newest_hint(self, vid: str) -> VehicleTrack | None:
+        tracks = self._hints.get(vid)
+        return max(tracks.values(), key=lambda tr: tr.t_ns) if tracks else None
 
     def _pool(self) -> _DetectorPool:
         families = tuple(sorted({v.family for v in self.vehicles.values()}))
@@ -490,7 +511,11 @@ class RsuPipeline:
             # never more certain than the camera's calibration, weighed as the solve weighed the corners
             calib = with_calibration(vehicle, obs, sol, self.settings.turn_ratio)
             fix = Fix.from_solution(sol, t_ns, self.camera.id, seq, calib, self._calibration_id)
-            self.tracks[vid].update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
+            track = self.tracks[vid]
+            first = not track.found
+            track.update(t_ns, sol.x, sol.y, sol.yaw, sol.z)
+            if first:
+                self._seed_velocity(vid, track)
             self._whereabouts.pop(vid, None)
             self._report_misses.pop(vid, None)
         elif mode == "tracked":
@@ -498,6 +523,15 @@ class RsuPipeline:
         if sol is None and mode not in ("waiting", "out_of_view"):
             mode = "searching"
         return VehicleResult(vid, sol, mode, regions, obs, fix)
+
+    def _seed_velocity(self, vid: str, track: VehicleTrack) -> None:
+        """A track begun from one fix (the bus found by a hinted crop or a search) takes the velocity of a
+        fresh hint track of the bus: its next crops are the predicted motion's margin, not the top speed's."""
+        s = self.settings
+        moving = [h for h in self._hints.get(vid, {}).values()
+                  if h.velocity is not None and s_from_ns(abs(track.t_ns - h.t_ns)) <= s.hint_max_age_s]
+        if moving:
+            track.velocity = min(moving, key=lambda h: abs(track.t_ns - h.t_ns)).velocity.copy()
 
     def _bounded(self) -> bool:
         """Is acquisition limited to where the buses can be? (Not in the search-every-frame mode.)"""
@@ -564,9 +598,9 @@ class RsuPipeline:
         """(what predicts the unfound vehicle's pose, extra margin) to crop for its tags: another RSU's
         fresh fix, else its own report when sure enough; None: it is to be searched for."""
         s = self.settings
-        h = self._hints.get(vid)
-        if h is not None and s_from_ns(abs(t_ns - h.t_ns)) <= s.hint_max_age_s:
-            return h, s.hint_margin_m
+        fresh = [h for h in self._hints.get(vid, {}).values() if s_from_ns(abs(t_ns - h.t_ns)) <= s.hint_max_age_s]
+        if fresh:  # the one that crops least: a track with a velocity, else the newest
+            return min(fresh, key=lambda h: h.predict(t_ns).pos_radius), s.hint_margin_m
         c = self._coarse.get(vid)
         if (c is None or c.yaw is None or c.velocity is None or not self._bounded()
                 or s_from_ns(abs(t_ns - c.t_ns)) > s.hint_max_age_s

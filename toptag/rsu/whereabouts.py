@@ -223,15 +223,19 @@ class Whereabouts:
             self.beyond |= bool(p[0].any() or p[-1].any() or p[:, 0].any() or p[:, -1].any())
 
     def limit(self, x: float, y: float, radius: float) -> None:
-        """The vehicle is within radius of (x, y). When that leaves no position of the grid although the
-        disc has some, what was believed is wrong (a coarse position beyond its sigma, a bus missed by
-        every search of the disc): the disc is taken as it is."""
+        """The vehicle is within radius of (x, y). When that leaves no position, neither in the grid nor
+        beyond it, although the disc has some in the grid, what was believed is wrong (a coarse position
+        beyond its sigma, a bus missed by every search of the disc): the disc is taken as it is. A disc
+        that reaches beyond the grid while the vehicle may be there contradicts nothing: the vehicle is
+        beyond (e.g. a bus leaving, whose own tight position is past the view, and an older, wider hint)."""
         disc = self.grid.disc(x, y, radius)
-        narrowed = self.possible & disc
-        self.possible = narrowed if narrowed.any() or not disc.any() else disc
         g = self.grid
-        self.beyond &= not (x - radius > g.x0 and y - radius > g.y0 and x + radius < g.x0 + CELL_M * (g.nx - 1)
-                            and y + radius < g.y0 + CELL_M * (g.ny - 1))
+        within = (x - radius > g.x0 and y - radius > g.y0 and x + radius < g.x0 + CELL_M * (g.nx - 1)
+                  and y + radius < g.y0 + CELL_M * (g.ny - 1))
+        narrowed = self.possible & disc
+        consistent = narrowed.any() or not disc.any() or (self.beyond and not within)
+        self.possible = narrowed if consistent else disc
+        self.beyond &= not within
 
     def _candidates(self) -> np.ndarray:
         return np.flatnonzero(self.possible.ravel() & self.grid.in_view)
