@@ -9,8 +9,13 @@ problem (errors: exit 2; warnings: exit 0) and per intersection what its cameras
 the junction box (where the roads cross) that one and two cameras see at roof height (3 m), and warns
 of an intersection no camera covers; and the share of its roads within the approach radius that a
 camera sees, with the distance from the centre up to which 90 % of them are seen: a bus in session
-(inside the approach radius) beyond that is not fixed by an RSU, so its fused pose is not "ok" there. Draws the top view (default DIR/site-check.png): roads, approach
-radius, RSU positions, each camera's footprint on the ground and its 8-25 m band at roof height.
+(inside the approach radius) beyond that is not fixed by an RSU, so its fused pose is not "ok" there.
+With a scenario, its drive (the buses' true poses over one pass of its legs, 10 Hz): per bus, the share
+of its session (presence as the bus computes it) with two of its tags whole in some camera's image, at
+the approach radius and at smaller ones (the ceiling of "fused ok while in session" for each radius),
+and its longest stretch out of every image within the distance the cameras cover (a blind spot on its
+route). Draws the top view (default DIR/site-check.png): roads, approach radius, RSU positions, each
+camera's footprint on the ground and its 8-25 m band at roof height.
 
 Lives in sim/ because it validates the simulator's scenario too; it draws nothing the RSUs compute.
 """
@@ -29,7 +34,8 @@ from toptag.site import IntersectionSpec, MapFile, load_site_file
 from toptag.vehicle import Vehicle
 
 ROOF_Z = 3.0
-NEAR, FAR = 8.0, 25.0  # the roof footprint band: horizontal distance from the camera, m
+NEAR, FAR = 8.0, 25.0
+DRIVE_RADII = (35.0, 25.0, 20.0, 15.0)  # approach radii below the site's at which the drive is also scored  # the roof footprint band: horizontal distance from the camera, m
 GROUND_RANGE = 60.0  # ground footprints are drawn to this distance from the camera
 
 
@@ -122,6 +128,7 @@ class SiteCheck:
         self.cameras: list[tuple[Camera, str]] = []  # (camera, intersection id)
         self.vehicles: list[Vehicle] = []
         self.coverage: dict[str, dict] = {}
+        self.scenario = None
 
     def _load(self, what, loader):
         try:
@@ -175,10 +182,65 @@ class SiteCheck:
         if site.scenario is not None:
             from sim.scenario import load_scenario
 
-            self._load(site.scenario, lambda: load_scenario(d / site.scenario))
+            self.scenario = self._load(site.scenario, lambda: load_scenario(d / site.scenario))
         if self.map is not None:
             self._cover()
+            if self.scenario is not None and not self.errors:
+                self._drive()
         return self
+
+    def _drive(self, step_s: float = 0.1) -> None:
+        """The scenario's buses on their true poses: how much of each one's session some camera sees."""
+        from sim.render import PlacedVehicle
+        from sim.sampling import in_some_view
+        from sim.world import World
+        from toptag.fusion.presence import IntersectionPresence
+
+        world = World(self.scenario)
+        world.start(0)
+        times = np.arange(0, world.legs_end_ns, int(step_s * 1e9))
+        for inter in self.map.intersections:
+            cams = [c for c, i in self.cameras if i == inter.id]
+            if not cams:
+                continue
+            radii = [inter.radius] + [r for r in DRIVE_RADII if r < inter.radius]
+            reach = self.coverage[inter.id]["covered_radius_m"]
+            buses = {}
+            for bus in world.bus_ids:
+                vehicle = world.vehicle(bus)
+                track = []  # (t s, x, y, distance from the centre, in view)
+                for t in times:
+                    s = world.state(bus, int(t))
+                    if s is not None:
+                        seen = in_some_view(cams, PlacedVehicle(vehicle, s.x, s.y, s.yaw, s.z))
+                        track.append((t / 1e9, s.x, s.y, float(np.hypot(s.x - inter.center[0], s.y - inter.center[1])), seen))
+                shares = {}
+                for r in radii:
+                    presence = IntersectionPresence(MapFile(intersections=[inter.model_copy(update={"radius": r})]))
+                    inside = []
+                    for t, x, y, _, seen in track:
+                        presence.update(x, y)
+                        if presence.current is not None:
+                            inside.append(seen)
+                    if inside:
+                        shares[r] = float(np.mean(inside))
+                blind, run = (0.0, None), None  # longest stretch out of view within reach: (s, (from, to))
+                for t, x, y, dist, seen in track:
+                    if dist <= reach and not seen:
+                        run = (run[0], (t, x, y)) if run else ((t, x, y), (t, x, y))
+                        if run[1][0] - run[0][0] + step_s > blind[0]:
+                            blind = (run[1][0] - run[0][0] + step_s, run)
+                    else:
+                        run = None
+                buses[bus] = {"in_view_in_session": shares, "longest_unseen_within_reach_s": round(blind[0], 1),
+                              "unseen_from_to": None if blind[1] is None else
+                              [[round(v, 1) for v in blind[1][0][1:]], [round(v, 1) for v in blind[1][1][1:]]]}
+            self.coverage[inter.id]["drive"] = {"duration_s": round(world.legs_end_ns / 1e9, 1), "buses": buses}
+            worst = min((b["in_view_in_session"].get(inter.radius, 1.0) for b in buses.values()), default=1.0)
+            if worst < 0.95:
+                self.notes.append(f"intersection {inter.id}: in the scenario's drive a bus has two tags in some camera's "
+                                  f"image during only {100 * worst:.0f} % of its session: its fused pose is \"ok\" (a fix "
+                                  f"less than 1 s old) for little more of it; the shares at smaller approach radii follow")
 
     def _cover(self) -> None:
         for inter in self.map.intersections:
@@ -229,6 +291,12 @@ class SiteCheck:
                         f"{100 * cov.get('two', 0):.0f} % by two cameras\nroads within the approach radius: "
                         f"{100 * cov.get('approach', 0):.0f} % (90 % up to {cov.get('covered_radius_m', 0):g} m)",
                         c + [0, inter.radius + 2], ha="center", fontsize=8)
+            for bus, b in cov.get("drive", {}).get("buses", {}).items():
+                if b["unseen_from_to"]:  # the bus's longest blind stretch within the covered distance
+                    (xa, ya), (xb, yb) = b["unseen_from_to"]
+                    ax.plot([xa, xb], [ya, yb], "-", color="red", lw=3, zorder=4)
+                    ax.annotate(f"{bus} unseen {b['longest_unseen_within_reach_s']:g} s", ((xa + xb) / 2, (ya + yb) / 2 + 1),
+                                color="red", fontsize=7, ha="center", zorder=4)
         for k, (cam, _) in enumerate(self.cameras):
             col = colours[k % len(colours)]
             ground = _ground_hits(cam, 0.0, GROUND_RANGE)
@@ -275,6 +343,16 @@ def main(argv: list[str]) -> int:
             print(f"  {iid}: cameras {', '.join(cov['cameras']) or 'none'}; junction box seen at roof height by one camera "
                   f"{100 * cov['one']:.0f} %, by two {100 * cov['two']:.0f} %; roads within the approach radius by one "
                   f"{100 * cov['approach']:.0f} % (90 % up to {cov['covered_radius_m']:g} m from the centre)")
+            drive = cov.get("drive")
+            if drive:
+                print(f"  {iid}: the scenario's drive ({drive['duration_s']:g} s, true poses): two tags of the bus in some "
+                      f"camera's image during its session")
+                for bus, b in drive["buses"].items():
+                    shares = ", ".join(f"{r:g} m {100 * v:.0f} %" for r, v in b["in_view_in_session"].items())
+                    blind = (f"; longest unseen within {cov['covered_radius_m']:g} m: {b['longest_unseen_within_reach_s']:g} s, "
+                             f"({b['unseen_from_to'][0][0]:g}, {b['unseen_from_to'][0][1]:g}) to "
+                             f"({b['unseen_from_to'][1][0]:g}, {b['unseen_from_to'][1][1]:g})") if b["unseen_from_to"] else ""
+                    print(f"    {bus}: with an approach radius of {shares}{blind}")
         out = args.out or args.folder / "site-check.png"
         try:
             require_plotting()

@@ -31,6 +31,26 @@ def test_the_demo_site_is_a_valid_site_folder(tmp_path):
     # some camera's view 94 % of the time within 15 m, 0 % beyond 20 m), not the 45 m approach radius.
     assert "roads within the approach radius by one 25 % (90 % up to 15 m from the centre)" in r.stdout
     assert "x1: cameras see 25 % of its roads within the approach radius (45 m)" in r.stdout
+    assert "bus-17: with an approach radius of 45 m" in r.stdout and "bus-42: with an approach radius of 45 m" in r.stdout
+
+
+@pytest.mark.integration
+def test_site_check_scores_the_scenarios_drive_and_finds_its_blind_spot():
+    """Per bus, the share of its session in some camera's image rises as the approach radius shrinks (what
+    bounds "fused ok while in session"); bus-17's right turn from the east runs in the curb lane (y 5.5 m),
+    which no corner camera sees between ~14 and ~8 m from the centre."""
+    check = SiteCheck(DEMO).run()
+    drive = check.coverage["x1"]["drive"]
+    assert drive["duration_s"] > 40
+    for bus, b in drive["buses"].items():
+        shares = [b["in_view_in_session"][r] for r in (45.0, 35.0, 25.0, 20.0, 15.0)]
+        assert all(a < c for a, c in zip(shares, shares[1:])), (bus, shares)
+        assert 0.2 < shares[0] < 0.7, (bus, shares)  # far from the issue's 95 %: the site, not the software
+    b17 = drive["buses"]["bus-17"]
+    assert b17["longest_unseen_within_reach_s"] >= 1.0
+    (x0, y0), (x1, y1) = b17["unseen_from_to"]
+    assert x0 > x1 > 5 and abs(y0 - 5.5) < 0.5, b17
+    assert any("in the scenario's drive a bus has two tags" in n for n in check.notes)
 
 
 @pytest.mark.integration
