@@ -1,6 +1,7 @@
 """The RSU pipeline on rendered frames: acquisition, tracking in predicted regions, several buses,
 falling back to acquisition, never reporting an unannounced bus, equal accuracy to full-frame search."""
 import json
+import threading
 from pathlib import Path
 
 import cv2
@@ -459,6 +460,35 @@ def test_a_deferred_search_runs_between_frames_and_its_find_is_tracked_after(bus
     assert third.vehicles[bus.id].mode == "tracked" and third.vehicles[bus.id].fix is not None
 
 
+
+def test_a_deferred_searchs_work_runs_on_another_thread_while_frames_go_on_and_ends_as_inline(bus_pass):
+    """search_work hands the deferred search's detection to another thread (once); the next frame is
+    processed meanwhile; continue_search ends nothing while that work runs, then at once with the result
+    the search run here gives (the bus acquired in its own frame, the same fix)."""
+    camera, bus, frames = bus_pass
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    (t1, img1, _, _), (t2, img2, _, _) = (frames[i] for i in shown[2:4])
+    inline = RsuPipeline(camera)
+    inline.add_vehicle(bus)
+    inline.process(img1, t1, defer_search=True)
+    want = inline.continue_search(should_yield=lambda: False).vehicles[bus.id]
+    p = RsuPipeline(camera)
+    p.add_vehicle(bus)
+    assert p.process(img1, t1, defer_search=True).search_deferred
+    work = p.search_work()
+    assert work is not None and p.search_work() is None  # handed out once
+    assert p.continue_search() is None and not p.search_ready  # runs elsewhere: nothing ends here yet
+    threads = []
+    worker = threading.Thread(target=lambda: (threads.append(threading.get_ident()), work()))
+    worker.start()
+    second = p.process(img2, t2, defer_search=True)  # a frame meanwhile: no second search
+    assert not second.search_deferred and second.vehicles[bus.id].mode == "waiting"
+    worker.join()
+    assert p.search_ready and threads[0] != threading.get_ident()
+    done = p.continue_search()
+    vr = done.vehicles[bus.id]
+    assert done.t_ns == t1 and vr.mode == "acquired" and not p.search_pending
+    assert vr.fix is not None and (vr.fix.x, vr.fix.y, vr.fix.yaw) == (want.fix.x, want.fix.y, want.fix.yaw)
 
 def test_plane_scale_is_the_shortest_and_longest_image_of_a_metre_on_the_roof():
     """plane_scale_px against brute force: a 0.5 m segment of the roof plane turned through 180 degrees,

@@ -9,9 +9,10 @@ with backoff while the RSU keeps serving its sessions, and stamps each frame wit
 Idle while no bus is in session: frames arrive and are dropped undecoded. A bus's Approach (or, for an
 RSU started late, the answer to a session query) adds its code bag to the pipeline; the RSU then
 detects only those tags and publishes one PoseFix per bus per frame, stamped with the frame's capture
-time. An acquisition search (for a bus not yet found) is run after its frame; while another bus is tracked,
-a batch of detection jobs at a time between frames, so that it delays the next frame's tracked buses by
-one batch at most; its fix is stamped with the capture time of the frame it searched. Leave, or the bus's liveliness token vanishing,
+time. An acquisition search (for a bus not yet found) is begun with its frame and run on a thread of
+lower priority (SEARCH_NICE) while the next frames are processed, so that a tracked bus's frame never
+waits for it, here or (the other RSUs' searches being niced too) on another RSU of the host; its fix is
+stamped with the capture time of the frame it searched. Leave, or the bus's liveliness token vanishing,
 ends the session. RsuStatus every second, with
 the host's clock (toptag.hostclock) and what the buses think of this RSU (their RsuDiagnosis on
 keys.rsu_diagnosis: its time offset, and whether its camera is flagged for drift).
@@ -20,9 +21,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import queue
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -53,7 +56,11 @@ from toptag.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
 
-SEARCH_STARVED_FRAMES = 1  # a deferred search runs a batch after this many frames, though a newer one waits
+# An acquisition search (tens of ms of CPU, searched for as long as a bus is announced but not found) runs
+# on a thread this much nicer than the RSU's frames, so that every tracked frame on the host, this RSU's
+# and the others', takes the cores first: the search is what may wait (its bus is acquired a little
+# later on a busy host), not the tracked buses' fixes.
+SEARCH_NICE = 10
 DIAGNOSIS_SHOWN_S = 10.0  # a bus's diagnosis of this RSU is shown in RsuStatus this long after it came
 
 
@@ -115,8 +122,9 @@ class RsuService:
                         if source is None else None)
         self._bad_logged = 0
         self._search_frame = None  # (processing start, clock, seq, modes) of the frame whose search is deferred
-        self._arrivals_taken = 0  # frames arrived when the loop last took one (_frame_waiting)
-        self._frames_before_search = 0  # frames processed since the deferred search last ran
+        self._searcher = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"search-{self.rsu_id}",
+                                            initializer=_lower_priority, initargs=(SEARCH_NICE,))
+        self._search_run: Future | None = None  # the deferred search's work, on self._searcher
         self._watch = watch_buses(session, intersection,
                                   on_appear=lambda bus: self._changes.put(("appear", bus)),
                                   on_vanish=lambda bus: self._changes.put(("leave", bus, "liveliness lost")),
@@ -261,8 +269,6 @@ class RsuService:
         self._detections_pub.put(self.detections(capture_time_ns, seq, result, processing_ns))
         if result.search_deferred:
             self._search_frame = (t0, clock, seq, {bus: vr.mode for bus, vr in result.vehicles.items()})
-        elif self.pipeline.search_pending:
-            self._frames_before_search += 1
 
     def _publisher(self, t0: int, clock):
         """(publish, published): publish(vr) sends a bus's fix as soon as the pipeline has it, its processing
@@ -277,15 +283,31 @@ class RsuService:
 
         return publish, published
 
+    def step_search(self) -> None:
+        """The deferred search: its work handed to the search thread, or, once that has run, ended here (the
+        pipeline's thread)."""
+        run = self._search_run
+        if run is not None:
+            if not run.done():
+                return
+            self._search_run = None
+            if run.exception() is not None:
+                log.error("acquisition search failed: %s", run.exception())
+                self.pipeline.drop_search()
+            elif self.pipeline.search_ready:
+                self.continue_search()
+        work = self.pipeline.search_work()
+        if work is not None:
+            self._search_run = self._searcher.submit(work)
+
     def continue_search(self) -> None:
-        """Run the deferred search until a newer frame waits; when it ends, publish its fixes and its frame's
-        detections again with the searched buses' modes (its processing counted from the frame's start:
-        the frames tracked in between included)."""
+        """Run the deferred search until a newer frame waits (at once when its work has run on the search
+        thread); when it ends, publish its fixes and its frame's detections again with the searched buses'
+        modes (its processing counted from the frame's start: the frames tracked in between included)."""
         t0, clock, seq, modes = self._search_frame
         publish, published = self._publisher(t0, clock)
-        self._frames_before_search = 0
         try:
-            result = self.pipeline.continue_search(self._tracked_frame_waiting, on_vehicle=publish)
+            result = self.pipeline.continue_search(on_vehicle=publish)
         except Exception as e:  # a bug in one search must not stop the RSU, nor leave it searching forever
             log.exception("acquisition search of frame %s failed: %s", seq, e)
             self.pipeline.drop_search()
@@ -295,17 +317,6 @@ class RsuService:
         self.counters.fixes_published += len(published)
         self.counters.frames_with_fix += bool(published)
         self._detections_pub.put(self.detections(result.t_ns, seq, result, time.perf_counter_ns() - t0, modes))
-
-    def _frame_waiting(self) -> bool:
-        """Has a newer frame come since the loop last took one?"""
-        return self._arrivals() != self._arrivals_taken
-
-    def _tracked_frame_waiting(self) -> bool:
-        """Does a newer frame wait with a tracked bus in it (whose fix must not wait for a search)?"""
-        return self.pipeline.tracking and self._frame_waiting()
-
-    def _arrivals(self) -> int:
-        return self._frames.arrived if self.source is None else self.source.stats().frames_read
 
     def detections(self, capture_time_ns: int, seq: int, result, processing_ns: int,
                    modes: dict[str, str] | None = None) -> TagDetections:
@@ -361,18 +372,12 @@ class RsuService:
         last = time.monotonic()
         while not self._stop.is_set() and (t_end is None or time.monotonic() < t_end):
             self._apply_changes()
-            frame = None
-            # The deferred search goes on unless a newer frame with a tracked bus waits (and then a batch of it
-            # between frames at least, however busy: an unfound bus is acquired, later).
-            if self.pipeline.search_pending and (not self._tracked_frame_waiting()
-                                                 or self._frames_before_search >= SEARCH_STARVED_FRAMES):
-                self.continue_search()
+            self.step_search()
+            wait = 0.01 if self._search_run is not None else 0.05  # a search that ends is concluded soon
+            if self.source is None:
+                frame, handle = self._frames.recv(timeout=wait), self.handle_frame
             else:
-                if self.source is None:
-                    frame, handle = self._frames.recv(timeout=0.05), self.handle_frame
-                else:
-                    frame, handle = self.source.get(timeout=0.05), self.handle_captured
-                self._arrivals_taken = self._arrivals()
+                frame, handle = self.source.get(timeout=wait), self.handle_captured
             now = time.monotonic()
             if self._sessions:
                 self.counters.active_s += now - last
@@ -392,6 +397,7 @@ class RsuService:
             self.source.stop()
 
     def close(self) -> None:
+        self._searcher.shutdown(wait=True, cancel_futures=True)
         for s in self._subs:
             s.close()
         if self._frames is not None:
@@ -404,6 +410,16 @@ class RsuService:
         self._status_pub.close()
         self._detections_pub.close()
         self.clock.close()
+
+
+def _lower_priority(nice: int) -> None:
+    """Make the calling thread `nice` steps nicer (Linux: a thread's own nice value; the detector threads
+    it starts inherit it)."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    except (AttributeError, OSError) as e:  # not Linux, or not allowed: the search runs at the RSU's priority
+        log.info("search thread keeps the RSU's priority: %s", e)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -173,8 +173,11 @@ class _Search:
     tiles: np.ndarray | None  # the image tiles searched (None: the whole frame)
     jobs: list[DetectJob]  # largest first
     pool: "_DetectorPool"
+    wanted: frozenset = frozenset()  # (family, tag id) of the buses sought: the coarse finds worth confirming
     found: list = field(default_factory=list)  # detections of jobs[:len(found)]
     detect_s: float = 0.0
+    raw: list | None = None  # all its detections, once its work has run (RsuPipeline.search_work)
+    handed_out: bool = False  # its work was given to another thread (search_work)
 
     @property
     def pixels(self) -> int:
@@ -217,19 +220,23 @@ class _DetectorPool:
             cache[key] = TagDetector(self.families, s)
         return cache[key]
 
+    def _one(self, gray: np.ndarray, job: DetectJob, threaded: bool = False) -> list[RawDetection]:
+        b = job.box
+        return self._detector(job.decimate, threaded).detect_raw(
+            gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample, None if job.thorough else False, job.expect,
+            job.min_contrast)
+
+    def run_here(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[list[RawDetection]]:
+        """Detections per job, in job order, each on the calling thread (a costly one on the detector's own
+        threads, which the calling thread starts)."""
+        return [self._one(gray, j, self.workers > 1 and j.cost >= _THREADED_JOB_COST) for j in jobs]
+
     def run(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[list[RawDetection]]:
-        """Detections per job, in job order."""
-
-        def one(job: DetectJob, threaded: bool = False):
-            b = job.box
-            return self._detector(job.decimate, threaded).detect_raw(
-                gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample, None if job.thorough else False, job.expect,
-                job.min_contrast)
-
+        """Detections per job, in job order (on the workers when there are several)."""
         if self.executor is None or len(jobs) < 2:
-            return [one(j, self.workers > 1 and j.cost >= _THREADED_JOB_COST) for j in jobs]
+            return self.run_here(gray, jobs)
         order = sorted(range(len(jobs)), key=lambda i: -jobs[i].cost)  # largest first: workers end together
-        results = dict(zip(order, self.executor.map(one, [jobs[i] for i in order])))
+        results = dict(zip(order, self.executor.map(lambda j: self._one(gray, j), [jobs[i] for i in order])))
         return [results[i] for i in range(len(jobs))]
 
 
@@ -408,8 +415,9 @@ class RsuPipeline:
             tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound]) if where else None
             jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], tiles)
             jobs = self._contrast_floor(image(), jobs) if jobs else []
+            wanted = frozenset((self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids)
             search = _Search(t_ns, seq, image() if jobs else None, list(unfound), tiles,
-                             sorted(jobs, key=lambda j: -j.cost), pool)
+                             sorted(jobs, key=lambda j: -j.cost), pool, wanted)
             result.pixels_searched += search.pixels
             result.search_cost_px = search.cost_px
             if defer_search and jobs:
@@ -441,9 +449,30 @@ class RsuPipeline:
         """Is a deferred search under way (continue_search)?"""
         return self._search is not None
 
+    @property
+    def search_ready(self) -> bool:
+        """Has the deferred search's work run on another thread (search_work), so that continue_search ends it?"""
+        return self._search is not None and self._search.raw is not None
+
     def drop_search(self) -> None:
         """Abandon the deferred search (its buses are searched for again when due)."""
         self._search = None
+
+    def search_work(self) -> Callable[[], None] | None:
+        """The deferred search's detection (its jobs, then its coarse finds confirmed at full resolution) as
+        work for another thread, so that frames go on being processed meanwhile: it reads only the search's
+        own frame and jobs, runs them one at a time on the calling thread (not on the pool's workers, which
+        the frames' crops use), and touches nothing else of the pipeline. Once it has run, continue_search
+        ends the search at once. None when no search is pending or its work was handed out already."""
+        s = self._search
+        if s is None or s.handed_out:
+            return None
+        s.handed_out = True
+
+        def work() -> None:
+            s.raw = self._run_search(s, alone=True)
+
+        return work
 
     def continue_search(self, should_yield: Callable[[], bool] | None = None,
                         on_vehicle: Callable[[VehicleResult], None] | None = None) -> FrameResult | None:
@@ -452,9 +481,9 @@ class RsuPipeline:
         (mode "acquired", or "searching" when not found; a bus found meanwhile by other means, or gone, is
         left out), each also to on_vehicle. None while it goes on, or when there is none."""
         s = self._search
-        if s is None:
+        if s is None or (s.handed_out and s.raw is None):  # none, or its work runs elsewhere
             return None
-        raw = self._run_search(s, should_yield)
+        raw = s.raw if s.raw is not None else self._run_search(s, should_yield)
         if raw is None:
             return None
         self._search = None
@@ -477,10 +506,13 @@ class RsuPipeline:
         result.solve_ms = (time.perf_counter() - t0) * 1e3
         return result
 
-    def _run_search(self, s: _Search, should_yield: Callable[[], bool] | None = None) -> list[RawDetection] | None:
+    def _run_search(self, s: _Search, should_yield: Callable[[], bool] | None = None,
+                    alone: bool = False) -> list[RawDetection] | None:
         """The search's detections (coarse finds confirmed at full resolution), once all its jobs have run;
-        with should_yield, a batch of jobs at a time, returning None when it says to stop."""
+        with should_yield, a batch of jobs at a time, returning None when it says to stop. alone: every job
+        on the calling thread, one after the other (search_work)."""
         step = len(s.jobs) if should_yield is None else max(1, self.settings.workers)
+        run = s.pool.run_here if alone else s.pool.run
         ran = 0
         t0 = time.perf_counter()
         try:
@@ -488,15 +520,13 @@ class RsuPipeline:
                 if ran and should_yield is not None and should_yield():
                     return None
                 batch = s.jobs[len(s.found):len(s.found) + step]
-                s.found += s.pool.run(s.gray, batch)
+                s.found += run(s.gray, batch)
                 ran += 1
             raw = [d for job, found in zip(s.jobs, s.found) if job.decimate == 1.0 for d in found]
-            wanted = {(self.vehicles[v].family, tid) for v in s.vehicle_ids if v in self.vehicles
-                      for tid in self.vehicles[v].tag_ids}
             coarse = [d for job, found in zip(s.jobs, s.found) if job.decimate != 1.0 for d in found
-                      if (d.family, d.tag_id) in wanted]
+                      if (d.family, d.tag_id) in s.wanted]
             if coarse:
-                raw += self._confirm_full_resolution(s.gray, coarse, s.pool)
+                raw += self._confirm_full_resolution(s.gray, coarse, run)
             return raw
         finally:
             s.detect_s += time.perf_counter() - t0
@@ -626,7 +656,7 @@ class RsuPipeline:
     def _upsample_for(self, side_px: float) -> int:
         return 2 if side_px < self.settings.upsample_below_px else 1
 
-    def _confirm_full_resolution(self, gray, coarse: list[RawDetection], pool) -> list[RawDetection]:
+    def _confirm_full_resolution(self, gray, coarse: list[RawDetection], run) -> list[RawDetection]:
         """Re-detect each coarse find in a crop at full resolution: decimated quads lose corner accuracy.
         A coarse find that the fine pass cannot confirm is dropped: unrefined corners are never used."""
         jobs = []
@@ -637,7 +667,7 @@ class RsuPipeline:
                       min(self.camera.width, int(hi[0] + pad) + 1), min(self.camera.height, int(hi[1] + pad) + 1))
             side = float(np.linalg.norm(np.roll(d.corners, -1, axis=0) - d.corners, axis=1).min())
             jobs.append(DetectJob(box, 1.0, self._upsample_for(side), expect=frozenset({(d.family, d.tag_id)})))
-        return [d for found in pool.run(gray, _merge_jobs(jobs)) for d in found]
+        return [d for found in run(gray, _merge_jobs(jobs)) for d in found]
 
 
 def _merge_jobs(jobs: list[DetectJob]) -> list[DetectJob]:
