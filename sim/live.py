@@ -17,9 +17,10 @@ Plays a scenario (sim.scenario; default: the bundled toptag/data/demo/scenario.j
   fixed grids from the start time and are published once their time has come.
 A bus exists only during its legs (see sim.world): between legs nothing is published for it.
 
-Honest timing: a frame is rendered up to 20 ms ahead of its tick and published at the tick (not
-before: nothing downstream sees a frame before its capture time), so that the renderer's own time is
-not counted as the camera's latency. If rendering falls behind, late ticks (more than half a period, at
+Honest timing: a frame is rendered up to 100 ms ahead of its tick and published at the tick (not
+before: nothing downstream sees a frame before its capture time) by the publishing thread, which also
+sends the sensor samples (computed per bus in 0.5 s windows ahead of their time), so that the renderer's
+own time is not counted as the camera's latency and an expensive frame does not make the next late. If rendering falls behind, late ticks (more than half a period, at
 most 50 ms) are skipped and counted, never rendered late in a backlog; the schedule never drifts. A progress line every
 5 s: frames per RSU, achieved fps, render+encode ms p50/p90, skipped ticks, sensor counts.
 
@@ -34,7 +35,8 @@ import logging
 import sys
 import threading
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -52,10 +54,11 @@ log = logging.getLogger(__name__)
 
 PROGRESS_S = 5.0
 MAX_LATE_S = 0.05  # a tick rendered later than min(half a period, this) is skipped
-# A frame is rendered up to this long before its tick and published at the tick: the scene at a future
-# instant is known, and a real camera's frame does not wait for a renderer. Less than the demo's
-# stagger between cameras (25 ms), so that publishing one frame on time never delays the next render.
-RENDER_AHEAD_NS = 20_000_000
+# A frame is rendered up to this long before its tick and published at the tick by the publishing
+# thread (SensorLoop): the scene at a future instant is known, and a real camera's frame does not wait
+# for a renderer. One period at the demo's 10 fps, so that an expensive frame (a bus close to a camera,
+# or the machine busy) delays the frames after it without making them late.
+RENDER_AHEAD_NS = 100_000_000
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -88,9 +91,10 @@ SENSOR_WINDOW_NS = 500_000_000
 
 
 class SensorLoop(threading.Thread):
-    """IMU, ground truth and GNSS of every bus, each sample published as soon as its time has come, none
-    after `end_ns` (the run's end: a starved main loop may notice it late). Samples are computed
-    SENSOR_WINDOW_NS at a time, ahead of their time (the world's sensor windows move forward as before)."""
+    """The publishing thread: IMU, ground truth and GNSS of every bus, and the frames the main loop
+    renders ahead (post_frame), each published as soon as its time has come, none after `end_ns` (the
+    run's end: a starved main loop may notice it late). Sensor samples are computed SENSOR_WINDOW_NS at a
+    time, ahead of their time (the world's sensor windows move forward as before)."""
 
     def __init__(self, world: World, pubs: _Publishers, stop: threading.Event, end_ns: int | None = None):
         super().__init__(name="sim-sensors", daemon=True)
@@ -101,6 +105,27 @@ class SensorLoop(threading.Thread):
         # Computed, not yet published: (publisher, count key, [(t_ns, message)] in time order, next index).
         self._queues: list[list] = []
         self._computed_ns = world.t0_ns - 1  # samples up to this time are computed
+        self._incoming: deque = deque()  # frames posted by the main loop: (tick, publisher, Frame)
+        self._wake = threading.Event()
+        self.frame_published: Callable[[str], None] = lambda rsu_id: None
+
+    def post_frame(self, tick_ns: int, pub: MessagePublisher, frame: Frame) -> None:
+        """Publish this frame at tick_ns (at once if that has passed)."""
+        self._incoming.append((tick_ns, pub, frame))
+        self._wake.set()
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def flush(self, t_ns: int) -> None:
+        """After the thread has stopped: publishes what is queued for times <= t_ns."""
+        self._take_posted()
+        self.publish_due(t_ns)
+
+    def _take_posted(self) -> None:
+        while self._incoming:
+            t, pub, frame = self._incoming.popleft()
+            self._queues.append([pub, "frame", [(t, frame)], 0])
 
     def run(self) -> None:
         try:
@@ -113,6 +138,7 @@ class SensorLoop(threading.Thread):
                     until = now + SENSOR_WINDOW_NS
                     self.compute(self._computed_ns, until if self.end_ns is None else min(until, self.end_ns))
                     self._computed_ns = until if self.end_ns is None else min(until, self.end_ns)
+                self._take_posted()
                 wake = self.publish_due(now)
                 if self.end_ns is not None and now >= self.end_ns:
                     break
@@ -120,7 +146,8 @@ class SensorLoop(threading.Thread):
                     wake = min(wake, self._computed_ns - SENSOR_WINDOW_NS // 2)
                 if self.end_ns is not None:
                     wake = min(wake, self.end_ns)
-                self.stop_event.wait(max(0.0, (wake - time.time_ns()) / NS_PER_S) + 2e-4)
+                self._wake.wait(max(0.0, (wake - time.time_ns()) / NS_PER_S) + 2e-4)
+                self._wake.clear()
         except BaseException as e:  # noqa: BLE001 - reported by the main loop
             self.error = e
             log.exception("sensor loop failed")
@@ -155,7 +182,9 @@ class SensorLoop(threading.Thread):
                 j += 1
             if j > i:
                 self.counts[kind] += j - i
-                if kind == "imu":
+                if kind == "frame":
+                    self.frame_published(items[i][1].rsu_id)
+                elif kind == "imu":
                     self.max_delay_ns = max(self.max_delay_ns, time.time_ns() - items[j - 1][0])
             q[3] = j
             if j < len(items):
@@ -170,6 +199,9 @@ class FrameStats:
         self.skipped = {r: 0 for r in rsu_ids}
         self.render_ms: list[float] = []  # since the last progress line
         self.all_render_ms: list[float] = []
+
+    def sent(self, rsu_id: str) -> None:
+        self.published[rsu_id] += 1
 
     def line(self, elapsed_s: float, since: dict[str, int], window_s: float) -> str:
         parts = []
@@ -196,6 +228,7 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
     clocks = [ClockInfo(source="sim", sync_uncertainty_ns=0) if f.clock_disciplined else ClockInfo(source="system")
               for f in world.faults]
     sensors = SensorLoop(world, pubs, stop, end)
+    sensors.frame_published = stats.sent
     sensors.start()
     log.info("sim running: t0_ns=%d, %d RSUs at %s fps, buses %s, %s%s", t0, n,
              "/".join(f"{f:g}" for f in world.fps), ", ".join(world.bus_ids) or "(none)",
@@ -235,16 +268,15 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
             c0 = time.perf_counter()
             jpeg, stamp = world.capture(r, t)
             stats.render_ms.append((time.perf_counter() - c0) * 1e3)
-            ahead = t - time.time_ns()
-            if ahead > 0 and stop.wait(ahead / NS_PER_S):  # a camera's frame exists from its capture time on
-                break
             cam = world.cameras[r]
-            pubs.frames[cam.id].put(Frame(rsu_id=cam.id, capture_time_ns=stamp, seq=next_k[r], encoding="jpeg",
-                                          width=cam.width, height=cam.height, image=jpeg, clock=clocks[r]))
-            stats.published[cam.id] += 1
+            # A camera's frame exists from its capture time on: the publishing thread sends it at its tick.
+            sensors.post_frame(t, pubs.frames[cam.id], Frame(
+                rsu_id=cam.id, capture_time_ns=stamp, seq=next_k[r], encoding="jpeg", width=cam.width,
+                height=cam.height, image=jpeg, clock=clocks[r]))
             next_k[r] += 1
     finally:
         stop.set()
+        sensors.wake()
         # Ticks that came due while the loop was behind and are not rendered now: skipped, and counted.
         t_stop = time.time_ns() if end is None else min(time.time_ns(), end)
         for r in range(n):
@@ -253,6 +285,8 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
                 stats.skipped[world.rsu_ids[r]] += due - next_k[r]
                 next_k[r] = due
         sensors.join(timeout=2.0)
+        if not sensors.is_alive():
+            sensors.flush(t_stop)  # frames rendered for ticks before the stop that it had not sent yet
         stats.all_render_ms.extend(stats.render_ms)
         ms = np.asarray(stats.all_render_ms) if stats.all_render_ms else np.zeros(1)
         log.info("sim stopped after %.1f s: frames %s; skipped %d; render+encode p50 %.1f ms p90 %.1f ms; "
