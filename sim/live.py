@@ -20,9 +20,10 @@ A bus exists only during its legs (see sim.world): between legs nothing is publi
 Honest timing: a frame is rendered up to 100 ms ahead of its tick and published at the tick (not
 before: nothing downstream sees a frame before its capture time) by the publishing thread, which also
 sends the sensor samples (computed per bus in 0.5 s windows ahead of their time), so that the renderer's
-own time is not counted as the camera's latency and an expensive frame does not make the next late. If rendering falls behind, late ticks (more than half a period, at
-most 50 ms) are skipped and counted, never rendered late in a backlog; the schedule never drifts. A progress line every
-5 s: frames per RSU, achieved fps, render+encode ms p50/p90, skipped ticks, sensor counts.
+own time is not counted as the camera's latency and an expensive frame does not make the next late. If
+rendering falls behind, late ticks (more than half a period, at most 50 ms) are skipped and counted,
+never rendered late in a backlog; the schedule never drifts. A progress line every 5 s: frames per RSU,
+achieved fps, render+encode ms p50/p90, skipped ticks, sensor counts.
 
 Exit 0 after --duration or on SIGINT/SIGTERM (session closed); 2 with one line on stderr for a bad
 scenario (or camera, vehicle, map file); 1 if the Zenoh session cannot be opened. Without --duration
@@ -136,8 +137,9 @@ class SensorLoop(threading.Thread):
                 if now + SENSOR_WINDOW_NS // 2 > self._computed_ns and (
                         self.end_ns is None or self._computed_ns < self.end_ns):
                     until = now + SENSOR_WINDOW_NS
-                    self.compute(self._computed_ns, until if self.end_ns is None else min(until, self.end_ns))
-                    self._computed_ns = until if self.end_ns is None else min(until, self.end_ns)
+                    until = until if self.end_ns is None else min(until, self.end_ns)
+                    self.compute(self._computed_ns, until)
+                    self._computed_ns = until
                 self._take_posted()
                 wake = self.publish_due(now)
                 if self.end_ns is not None and now >= self.end_ns:
