@@ -323,6 +323,37 @@ def test_a_precise_rsu_shows_its_whole_disagreement_with_a_pulled_filter():
     assert wild.m[0] < 2.0  # clipped: 10 sigma of the thresholds' scale
 
 
+def _view_case(share: float, step_m: float, sigma=(0.05, 0.23), err=(0.025, 0.3), n: int = 30) -> bool:
+    """Four RSUs see a bus every 0.1 s, driving step_m metres between fixes; three are right, one errs by
+    err (m across the track, deg in yaw) in every fix, each fix stating sigma (m, deg). Is that one flagged,
+    with the 3 cm / 0.1 deg box and a view share `share`?"""
+    from toptag.fusion.trust import RsuRecord
+    rule = BusFilter(FilterConfig(drift_view_bias_share=share, drift_min_pos_m=0.03, drift_min_yaw_deg=0.1))._drift
+    R = np.diag([sigma[0] ** 2, sigma[0] ** 2, math.radians(sigma[1]) ** 2])
+    S = R + np.diag([0.01 ** 2, 0.01 ** 2, math.radians(0.03) ** 2])  # plus the filter's own uncertainty
+    rng = np.random.default_rng(3)
+    recs = {r: RsuRecord(last_t=0, clock_known=True) for r in ("rsu-sw", "rsu-se", "rsu-ne", "rsu-nw")}
+    bias = np.array([0.0, err[0], math.radians(err[1])])
+    for k in range(n):
+        t = k * 100 * MS
+        for r in recs:
+            nu = 0.3 * rng.standard_normal(3) * np.sqrt(np.diag(R)) + (bias if r == "rsu-se" else 0.0)
+            recs[r] = rule.accumulate(recs[r], t, nu, S, None, R, (k * step_m, 0.0))
+            recs[r] = rule.decide(recs, r, t)
+    return recs["rsu-se"].flagged
+
+
+def test_fixes_from_one_place_do_not_average_their_error_down():
+    """A standing bus seen from one place: every fix of a healthy RSU errs alike (its view's error, here
+    1.3 stated sigmas in yaw, as rsu-se's did with bus-42 standing 21 m away in the compose demo). Counted as
+    30 independent fixes it is a persistent disagreement (flagged with no view share); weighed as one
+    view's error it is not. A camera turned by 0.2 deg, seen by precise fixes (1 cm, 0.05 deg) of a bus
+    driving at 7 m/s, is flagged."""
+    assert _view_case(share=0.0, step_m=0.0)
+    assert not _view_case(share=1.0, step_m=0.0)
+    assert _view_case(share=1.0, step_m=0.7, sigma=(0.01, 0.05), err=(0.035, 0.2))
+
+
 def test_refuse_policy_refuses_a_flagged_rsu(turn):
     traj, imu = turn
     faults = faults_from_options(drift_deg="rsu-se=0.3@2")

@@ -18,7 +18,10 @@ common to every fix it makes (`Fix.calib_cov`, what the camera file's calibratio
 the fix; toptag.solvers.calibrated), so it does not average down with more fixes, as noise does. It is
 B, the covariance of the RSU's constant bias, together with `bias_floor` (`drift_bias_sigma_m`,
 `drift_bias_sigma_deg`: what a healthy RSU's fixes may be off by beyond their stated calibration, e.g.
-the live pipeline's own per-RSU bias, `toptag eval livefix`).
+the live pipeline's own per-RSU bias, `toptag eval livefix`). Optionally (`view_bias_share` > 0) B also
+holds what the fixes' view-dependent errors leave in m: fixes of a bus seen from one place (a standing
+bus, one far tag) err alike, correlating as exp(-distance driven / `view_corr_m`), so they count as one
+view, not one sample per frame (DriftRule.bias_cov).
 
 A single wild fix cannot do much: nu is clipped to a Mahalanobis radius (`clip_sigma`, 10) before it
 enters b, so it weighs like a 10-sigma fix at most. The radius is taken on S plus the drift thresholds
@@ -124,6 +127,12 @@ class RsuRecord(NamedTuple):
     change_stat: float = 0.0  # its chi-square
     # The calibration its fixes say they were made with (Fix.calib_id): its long run is of that one only.
     calib_id: str | None = None
+    # Its fixes' view-dependent error (DriftRule.view_bias_share): Q, the covariance of sum S^-1 L u of its
+    # innovations (L the fix's noise sigma as a matrix, u common to fixes taken from nearby places), H its
+    # running sum decayed by the distance driven, and where the bus was at the newest (x, y).
+    Q: np.ndarray | None = None
+    H: np.ndarray | None = None
+    view_xy: tuple[float, float] | None = None
 
     @property
     def flagged(self) -> bool:
@@ -182,6 +191,12 @@ def _mean(info: tuple) -> tuple[np.ndarray, np.ndarray, float] | None:
     return C @ info[1], C, info[2]
 
 
+def _sqrtm(R: np.ndarray) -> np.ndarray:
+    """The symmetric square root of a covariance."""
+    w, V = np.linalg.eigh(R)
+    return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
+
+
 def _chi2(d: np.ndarray, C: np.ndarray) -> float:
     try:
         return float(d @ np.linalg.solve(C, d))
@@ -208,26 +223,45 @@ class DriftRule:
     baseline_window_s: float = 0.0  # the long-run deviation fades with this (0: no change test)
     change_bias_share: float = 0.5  # how much of the bias may differ between the baseline's views and this pass
     change_flag_stat: float = math.inf  # the change test's chi-square quantile (its own false-alarm rate)
+    view_bias_share: float = 0.0  # a fix's view-dependent error, as a share of its noise sigma (0: none)
+    view_corr_m: float = 2.0  # ...common to fixes of one RSU taken within about this distance driven
 
     def accumulate(self, rec: RsuRecord, t_ns: int, nu: np.ndarray, S: np.ndarray,
-                   B: np.ndarray | None = None) -> RsuRecord:
+                   B: np.ndarray | None = None, R: np.ndarray | None = None,
+                   xy: tuple[float, float] | None = None) -> RsuRecord:
         """The record with one more innovation nu at t_ns: S its covariance without what the fix
         shares with every other fix of its RSU, B that share (its constant bias: the calibration's,
-        the time offset's; None: none)."""
+        the time offset's; None: none); R the fix's own noise covariance and xy where the bus was (for
+        its view-dependent error: view_bias_share)."""
         B = np.zeros((3, 3)) if B is None else B
         Si = np.linalg.inv(S)
         d2 = _chi2(nu, S + self._floor)
         if d2 > self.clip_d2:
             nu = nu * math.sqrt(self.clip_d2 / d2)
+        view = self.view_bias_share > 0 and R is not None and xy is not None
+        X = Si @ _sqrtm(R) if view else None
         if rec.A is None:
             A, A2, b, sw, sw2, Bs = Si, Si, Si @ nu, 1.0, 1.0, B
+            Q, H = (X @ X.T, X) if view else (None, None)
         else:
             w = math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
             A, A2, b = w * rec.A + Si, (w * w) * rec.A2 + Si, w * rec.b + Si @ nu
             sw, sw2, Bs = w * rec.sums[0] + 1.0, w * w * rec.sums[1] + 1.0, w * rec.Bs + B
+            Q, H = None, None
+            if view:
+                # The view errors u of two fixes correlate as exp(-distance driven between them / view_corr_m):
+                # Q = sum_jk X_j rho_jk X_k', kept with H = sum_k rho(now, k) X_k (both faded as b is).
+                if rec.H is None:
+                    Q, H = X @ X.T, X
+                else:
+                    gap = 0.0 if rec.view_xy is None else math.hypot(xy[0] - rec.view_xy[0], xy[1] - rec.view_xy[1])
+                    Hp = (w * math.exp(-gap / self.view_corr_m)) * rec.H
+                    cross = X @ Hp.T
+                    Q, H = (w * w) * rec.Q + X @ X.T + cross + cross.T, Hp + X
         Ai = np.linalg.inv(A)
         return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=_chi2(b, A2), n_eff=sw * sw / sw2, sums=(sw, sw2),
-                            m=Ai @ b, C=Ai @ A2 @ Ai, Bs=Bs)
+                            m=Ai @ b, C=Ai @ A2 @ Ai, Bs=Bs, Q=Q, H=H,
+                            view_xy=(float(xy[0]), float(xy[1])) if view else rec.view_xy)
 
     def carry(self, rec: RsuRecord) -> RsuRecord:
         """The record with its deviation from the others in this filter added to the earlier passes'
@@ -242,8 +276,14 @@ class DriftRule:
 
     def bias_cov(self, rec: RsuRecord) -> np.ndarray:
         """The covariance of an RSU's constant bias: its fixes' calibration share (weighted mean over
-        the window) plus the floor."""
-        return self.bias_floor if rec.Bs is None else rec.Bs / rec.sums[0] + self.bias_floor
+        the window) plus the floor, plus what its fixes' view-dependent errors leave in its mean
+        innovation (view_bias_share² A^-1 Q A^-1: fixes taken from one place, e.g. of a standing bus,
+        share theirs and do not average it down)."""
+        B = self.bias_floor if rec.Bs is None else rec.Bs / rec.sums[0] + self.bias_floor
+        if rec.Q is not None and rec.A is not None:
+            Ai = np.linalg.inv(rec.A)
+            B = B + self.view_bias_share ** 2 * (Ai @ rec.Q @ Ai)
+        return B
 
     @property
     def _floor(self) -> np.ndarray:
