@@ -30,6 +30,7 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ("bench", "latency"): ("services.bench_latency:main", "capture-to-arrival latency through router and RSU"),
     ("bench", "rsu"): ("services.rsu.bench:main", "tracked RSU pipeline vs full-frame detection"),
     ("bench", "filter"): ("sim.bench_filter:main", "cost of the bus filter's add_fix, add_imu, estimate"),
+    ("bench", "bus"): ("services.bench_bus:main", "the bus agent process's CPU at 100 Hz IMU and 40 fixes/s"),
     ("eval", "fusion"): ("sim.studies.fusion:main", "fused pose error against latency, clock offsets, drift (study)"),
     ("bench", "solver"): ("services.bench_solver:main", "cost of one pose solve per solver (the RSU's two-tag case)"),
     ("bench", "demo"): ("services.bench_demo:main", "the whole demo: CPU per process, frames skipped, latency, fused ok"),
