@@ -146,10 +146,7 @@ class BusAgent:
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
             gnss = self._gnss
-        if est is not None and est.health.status == "ok":
-            sigma = float(np.sqrt(max(est.cov[0, 0], est.cov[1, 1], 1e-6)))
-            return CoarsePosition(t_ns=now_ns, x=est.x, y=est.y, sigma_m=sigma, source="fused")
-        return gnss_position(gnss, now_ns)
+        return coarse_position(est, gnss, now_ns)
 
     def whereabouts(self, now_ns: int) -> CoarsePosition | None:
         """What the Approach tells the RSUs of where the bus is (announced_position)."""
@@ -195,8 +192,14 @@ class BusAgent:
         log.info("left intersection %s (%s)", a.intersection_id, reason)
 
     def step(self, now_ns: int) -> None:
-        """Presence, repeated announcements and the fused output, once per output period."""
-        pos = self.position(now_ns)
+        """Presence, repeated announcements and the fused output, once per output period. One filter
+        estimate at now_ns serves all three (position, whereabouts and the fused pose are of the same
+        instant; estimating it three times was a third of the agent's CPU)."""
+        with self._lock:
+            est = self.filter.estimate(now_ns) if self.filter.initialized else None
+            gnss, speed = self._gnss, self._wheel_speed
+            past_paths = self._past_paths
+        pos = coarse_position(est, gnss, now_ns)
         if pos is not None:
             for event, inter in self.presence.update(pos.x, pos.y):
                 if event == "leave":
@@ -204,13 +207,10 @@ class BusAgent:
                 else:
                     self._enter(inter)
         if self._approach is not None and time.monotonic() - self._last_announce >= ANNOUNCE_PERIOD_S:
-            self._position = self.whereabouts(now_ns)
+            self._position = announced_position(est, gnss, speed, now_ns)
             self._announce()
-        with self._lock:
-            est = self.filter.estimate(now_ns) if self.filter.initialized else None
-            if est is not None:  # the health counts every fix since the agent started, across filters
-                est = dataclasses.replace(est, health=est.health.plus_paths(self._past_paths))
-        if est is not None:
+        if est is not None:  # the health counts every fix since the agent started, across filters
+            est = dataclasses.replace(est, health=est.health.plus_paths(past_paths))
             self._fused_pub.put(fused_to_message(est, self.bus_id))
         if time.monotonic() - self._last_diagnosis >= DIAGNOSIS_PERIOD_S:
             self._last_diagnosis = time.monotonic()
@@ -269,6 +269,15 @@ class BusAgent:
         if lat.size == 0:
             return {}
         return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99))}
+
+
+def coarse_position(est, gnss: GnssFix | None, now_ns: int) -> CoarsePosition | None:
+    """Where presence takes the bus to be: its filter's estimate at now_ns when healthy, else the latest
+    GNSS fix (metres are enough here)."""
+    if est is not None and est.health.status == "ok":
+        sigma = float(np.sqrt(max(est.cov[0, 0], est.cov[1, 1], 1e-6)))
+        return CoarsePosition(t_ns=now_ns, x=est.x, y=est.y, sigma_m=sigma, source="fused")
+    return gnss_position(gnss, now_ns)
 
 
 def announced_position(est, gnss: GnssFix | None, wheel_speed: float | None, now_ns: int) -> CoarsePosition | None:
