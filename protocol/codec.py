@@ -185,16 +185,32 @@ def decode_any(payload) -> Message:
     return decode(data, cls)
 
 
+_KEY_FIELDS: dict[str, tuple[tuple[str, str], ...]] = {}  # key -> (message field, id) pairs it names
+_KEY_FIELDS_MAX = 4096
+
+
+def _key_fields(key: str) -> tuple[tuple[str, str], ...]:
+    """The (message field, value) pairs a key's ids name (none for a key that is not a toptag key);
+    parsed once per key (a service sends and receives on a few keys, every message checks one)."""
+    fields = _KEY_FIELDS.get(key)
+    if fields is None:
+        try:
+            parsed = _keys.parse(key)
+        except _keys.KeyExprError:
+            fields = ()
+        else:
+            fields = tuple((_keys.ID_FIELDS[name], value) for name, value in parsed.ids.items()
+                           if name in _keys.ID_FIELDS)
+        if len(_KEY_FIELDS) < _KEY_FIELDS_MAX:
+            _KEY_FIELDS[key] = fields
+    return fields
+
+
 def check_key(msg: Message, key: str) -> None:
     """Raise ProtocolError if an id in the toptag key differs from the message's (e.g. a fix for bus A
     published on bus B's key). Keys that are not toptag keys are not checked."""
-    try:
-        parsed = _keys.parse(str(key))
-    except _keys.KeyExprError:
-        return
-    for name, value in parsed.ids.items():
-        field = _keys.ID_FIELDS.get(name)
-        if field is None or not hasattr(msg, field):
+    for field, value in _key_fields(str(key)):
+        if not hasattr(msg, field):
             continue
         actual = getattr(msg, field)
         if actual != value:
