@@ -492,8 +492,8 @@ class BusFilter:
         """Fix outcome counts and fixes from flagged RSUs: the archived ones plus the buffer's."""
         counts = dict(self._archived)
         flagged = self._archived_flagged
-        for r in self._fix_recs:
-            counts[r.outcome.value] += 1
+        for r in self._fix_recs:  # _value_: .value is a property, this loop runs at every estimate
+            counts[r.outcome._value_] += 1
             flagged += r.flagged
         return counts, flagged
 
