@@ -98,7 +98,8 @@ class _Received:
         self.last_fused: FusedPose | None = None
         self.diagnoses = 0
         self.approaches = 0
-        self.approached = threading.Event()
+        self.entered = 0  # agents that announced themselves (their first Approach, seq 1)
+        self.changed = threading.Condition(self.lock)
         self.counting = False
 
     def on_fused(self, m: FusedPose) -> None:
@@ -115,7 +116,8 @@ class _Received:
     def on_approach(self, m: Approach) -> None:
         with self.lock:
             self.approaches += self.counting
-        self.approached.set()
+            self.entered += m.seq == 1
+            self.changed.notify_all()
 
 
 def _fixes_in(h) -> int:
@@ -125,10 +127,13 @@ def _fixes_in(h) -> int:
 
 
 def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_ms: float = 100.0,
-        jitter_ms: float = 30.0, seed: int = 0, logs: str | None = None, agent_source: str | None = None) -> dict:
+        jitter_ms: float = 30.0, seed: int = 0, logs: str | None = None, agent_source: str | None = None,
+        also: list[str] | None = None) -> dict:
     """Play the drive to a freshly started agent and measure it (see the module doc). agent_source: run
     the agent from that checkout of toptag instead of this one (PYTHONPATH), to compare two versions
-    with the same bench."""
+    with the same bench. also: checkouts whose agents run beside it on the same drive at the same time
+    (the same load for both: a paired comparison); their CPU is in "also", and then what the bench
+    received (fused poses, approaches) is of all agents together."""
     drive = make_drive(duration_s, n_rsu, fix_hz, latency_ms, jitter_ms, seed)
     vehicle = Vehicle.load(VEHICLE)
     bus = vehicle.id
@@ -144,23 +149,31 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
     gnss_pub = MessagePublisher(session, keys.gnss(bus), GnssFix)
     fix_pubs: dict[str, MessagePublisher] = {}
     tmp = None if logs else tempfile.TemporaryDirectory(prefix="toptag-bench-bus-")
-    env, python = dict(os.environ), TOPTAG
-    if agent_source:  # -P: not the working directory's toptag either
-        python = [TOPTAG[0], "-P", *TOPTAG[1:]]
-        env["PYTHONPATH"] = os.pathsep.join([str(Path(agent_source).resolve())]
-                                            + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
-    group = ProcessGroup(Path(logs or tmp.name), env=env)
-    agent = group.start("bus", python + ["bus", "--vehicle", str(VEHICLE), "--map", str(MAP),
-                                         "--zenoh-mode", "peer", "--connect", endpoint, "--no-multicast-scouting"])
+    group = ProcessGroup(Path(logs or tmp.name))
+    agents = []
+    for i, source in enumerate([agent_source, *(also or [])]):
+        env, python = dict(os.environ), TOPTAG
+        if source:  # -P: not the working directory's toptag either
+            python = [TOPTAG[0], "-P", *TOPTAG[1:]]
+            env["PYTHONPATH"] = os.pathsep.join([str(Path(source).resolve())]
+                                                + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+        group.env = env
+        agents.append(group.start("bus" if i == 0 else f"bus-also-{i}",
+                                  python + ["bus", "--vehicle", str(VEHICLE), "--map", str(MAP), "--zenoh-mode",
+                                            "peer", "--connect", endpoint, "--no-multicast-scouting"]))
+    agent = agents[0]
     try:
         # Session entry: GNSS at the drive's start until the agent announces itself (and subscribes to fixes).
         first_gnss = next(e[2] for e in drive.events if e[1] == "gnss")
         deadline = time.monotonic() + 60.0
-        while not got.approached.wait(0.2):
-            if time.monotonic() > deadline or not agent.alive():
-                raise RuntimeError(f"the bus agent did not announce itself: {agent.log_tail()}")
+        while got.entered < len(agents):  # (each agent's first Approach)
+            dead = [a for a in agents if not a.alive()]
+            if time.monotonic() > deadline or dead:
+                raise RuntimeError(f"the bus agent did not announce itself: {(dead or agents)[0].log_tail()}")
             gnss_pub.put(GnssFix(bus_id=bus, t_ns=time.time_ns(), x=first_gnss[1], y=first_gnss[2],
                                  sigma_m=GNSS_SIGMA_M))
+            with got.lock:
+                got.changed.wait(0.2)
         time.sleep(0.5)  # its fix subscription's route reaches this peer
         start_ns = time.time_ns() + ns_from_ms(20)
         late = []
@@ -174,7 +187,7 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
             else:
                 late.append(-wait)
             if cpu0 is None:
-                cpu0, wall0 = cpu_seconds(agent.pid), time.monotonic()
+                cpu0, wall0 = [cpu_seconds(a.pid) for a in agents], time.monotonic()
                 got.counting = True
             if kind == "imu":
                 t, g, ax, ay, w = item
@@ -193,10 +206,10 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
                 clock = None if f.clock_bound_ns is None else ClockInfo(source="sim", sync_uncertainty_ns=f.clock_bound_ns)
                 pub.put(fix_to_message(f, bus, INTERSECTION, time.time_ns(), clock=clock))
             published[kind] += 1
-        cpu1, wall1 = cpu_seconds(agent.pid), time.monotonic()
+        cpu1, wall1 = [cpu_seconds(a.pid) for a in agents], time.monotonic()
         got.counting = False
         time.sleep(0.3)
-        if cpu0 is None or cpu1 is None:
+        if cpu0 is None or None in cpu0 + cpu1:
             raise RuntimeError(f"the bus agent exited during the drive: {agent.log_tail()}")
     finally:
         code = group.stop()
@@ -208,7 +221,8 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
         if tmp is not None:
             tmp.cleanup()
     window = wall1 - wall0
-    cpu = cpu1 - cpu0
+    cpus = [b - a for a, b in zip(cpu0, cpu1)]
+    cpu = cpus[0]
     last = got.last_fused
     return {
         "agent_cpu_s": round(cpu, 3), "window_s": round(window, 3),
@@ -223,6 +237,9 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
                      "fixes_seen_by_agent": None if last is None else _fixes_in(last.health),
                      "fixes_accepted_by_agent": None if last is None else last.health.accepted_fixes},
         "agent_exit_code": code.get("bus"), "agent_source": str(Path(agent_source).resolve()) if agent_source else None,
+        "also": [{"agent_source": str(Path(src).resolve()), "agent_cpu_s": round(c, 3),
+                  "agent_cpu_fraction": round(c / window, 4) if window > 0 else None,
+                  "agent_exit_code": code.get(f"bus-also-{i + 1}")} for i, (src, c) in enumerate(zip(also or [], cpus[1:]))],
         "load_average": [round(x, 2) for x in os.getloadavg()],
         "machine": f"{cpu_model(unknown='unknown CPU')}, nproc {usable_cores()}",
     }
@@ -240,8 +257,9 @@ def table(r: dict) -> str:
         f"diagnoses {rec['diagnoses']}, approaches {rec['approaches']}; fixes its filter saw "
         f"{rec['fixes_seen_by_agent']} (accepted {rec['fixes_accepted_by_agent']})",
         f"bus agent process CPU: {r['agent_cpu_s']:.2f} s over {r['window_s']:.1f} s = "
-        f"{100 * r['agent_cpu_fraction']:.2f} % of a core",
-    ])
+        f"{100 * r['agent_cpu_fraction']:.2f} % of a core" + (f" ({r['agent_source']})" if r["agent_source"] else ""),
+    ] + [f"beside it, on the same drive: {a['agent_cpu_s']:.2f} s = {100 * a['agent_cpu_fraction']:.2f} % of a core "
+         f"({a['agent_source']})" for a in r["also"]])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -254,6 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--agent-source", default=None, metavar="DIR",
                    help="run the agent from this checkout of toptag (e.g. an older worktree) to compare versions")
+    p.add_argument("--also", action="append", default=None, metavar="DIR",
+                   help="also run the agent of this checkout beside it on the same drive (repeatable): CPU of "
+                        "each under the same load")
     p.add_argument("--logs", default=None, help="directory for the agent's log (default: a temp dir)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     return p
@@ -264,9 +285,9 @@ def main(argv: list[str] | None = None) -> int:
     if not (a.duration > 0 and math.isfinite(a.duration)):
         print("toptag bench bus: --duration must be a positive number of seconds")
         return 2
-    r = run(a.duration, a.rsus, a.fix_hz, a.latency_ms, a.jitter_ms, a.seed, a.logs, a.agent_source)
+    r = run(a.duration, a.rsus, a.fix_hz, a.latency_ms, a.jitter_ms, a.seed, a.logs, a.agent_source, a.also)
     print(json.dumps(r, indent=1) if a.json else "toptag bench bus:\n" + table(r))
-    return 0 if r["agent_exit_code"] == 0 else 1
+    return 0 if r["agent_exit_code"] == 0 and all(a["agent_exit_code"] == 0 for a in r["also"]) else 1
 
 
 if __name__ == "__main__":
