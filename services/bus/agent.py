@@ -194,7 +194,7 @@ class BusAgent:
     def step(self, now_ns: int) -> None:
         """Presence, repeated announcements and the fused output, once per output period. One filter
         estimate at now_ns serves all three (position, whereabouts and the fused pose are of the same
-        instant; estimating it three times was a third of the agent's CPU)."""
+        instant; it was estimated up to three times per step)."""
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
             gnss, speed = self._gnss, self._wheel_speed
