@@ -242,22 +242,20 @@ class DriftRule:
         X = Si @ _sqrtm(R) if view else None
         if rec.A is None:
             A, A2, b, sw, sw2, Bs = Si, Si, Si @ nu, 1.0, 1.0, B
-            Q, H = (X @ X.T, X) if view else (None, None)
         else:
             w = math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
             A, A2, b = w * rec.A + Si, (w * w) * rec.A2 + Si, w * rec.b + Si @ nu
             sw, sw2, Bs = w * rec.sums[0] + 1.0, w * w * rec.sums[1] + 1.0, w * rec.Bs + B
-            Q, H = None, None
-            if view:
-                # The view errors u of two fixes correlate as exp(-distance driven between them / view_corr_m):
-                # Q = sum_jk X_j rho_jk X_k', kept with H = sum_k rho(now, k) X_k (both faded as b is).
-                if rec.H is None:
-                    Q, H = X @ X.T, X
-                else:
-                    gap = 0.0 if rec.view_xy is None else math.hypot(xy[0] - rec.view_xy[0], xy[1] - rec.view_xy[1])
-                    Hp = (w * math.exp(-gap / self.view_corr_m)) * rec.H
-                    cross = X @ Hp.T
-                    Q, H = (w * w) * rec.Q + X @ X.T + cross + cross.T, Hp + X
+        Q = H = None
+        if view and (rec.A is None or rec.H is None):
+            Q, H = X @ X.T, X
+        elif view:
+            # The view errors u of two fixes correlate as exp(-distance driven between them / view_corr_m):
+            # Q = sum_jk X_j rho_jk X_k', kept with H = sum_k rho(now, k) X_k (both faded as b is).
+            gap = 0.0 if rec.view_xy is None else math.hypot(xy[0] - rec.view_xy[0], xy[1] - rec.view_xy[1])
+            Hp = (w * math.exp(-gap / self.view_corr_m)) * rec.H
+            cross = X @ Hp.T
+            Q, H = (w * w) * rec.Q + X @ X.T + cross + cross.T, Hp + X
         Ai = np.linalg.inv(A)
         return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=_chi2(b, A2), n_eff=sw * sw / sw2, sums=(sw, sw2),
                             m=Ai @ b, C=Ai @ A2 @ Ai, Bs=Bs, Q=Q, H=H,
