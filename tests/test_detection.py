@@ -133,3 +133,28 @@ def test_a_contrast_floor_leaves_out_tags_of_less_contrast_for_that_call_only():
         assert len(det.detect_raw(img)) == 4
     finally:
         det.close()
+
+
+@pytest.mark.parametrize("decimate", [2.0, 4.0])
+def test_a_decimation_for_one_call_finds_what_a_detector_built_for_it_finds(decimate):
+    """One detector serves every pyramid level (the RSU builds one per thread, not one per level): a call
+    with `decimate` gives exactly the detections of a detector whose settings say that decimation, and the
+    next call without it is back at full resolution (the same as before)."""
+    from toptag.detection import DetectorSettings
+
+    cam, (a, pa), (b, pb), img = two_buses_frame("tag25h9")
+    one = TagDetector(("tag36h11", "tag25h9"))
+    built = TagDetector(("tag36h11", "tag25h9"), DetectorSettings(quad_decimate=decimate))
+    try:
+        full = one.detect_raw(img)
+        coarse, reference = one.detect_raw(img, decimate=decimate), built.detect_raw(img)
+        assert len(reference) == 4
+        assert [(d.family, d.tag_id) for d in coarse] == [(d.family, d.tag_id) for d in reference]
+        np.testing.assert_array_equal(np.array([d.corners for d in coarse]), np.array([d.corners for d in reference]))
+        # full resolution and the coarse level do differ, so the comparison above can fail
+        assert not np.array_equal(np.array([d.corners for d in coarse]), np.array([d.corners for d in full]))
+        again = one.detect_raw(img)
+        np.testing.assert_array_equal(np.array([d.corners for d in again]), np.array([d.corners for d in full]))
+    finally:
+        one.close()
+        built.close()

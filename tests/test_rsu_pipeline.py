@@ -490,6 +490,35 @@ def test_a_deferred_searchs_work_runs_on_another_thread_while_frames_go_on_and_e
     assert done.t_ns == t1 and vr.mode == "acquired" and not p.search_pending
     assert vr.fix is not None and (vr.fix.x, vr.fix.y, vr.fix.yaw) == (want.fix.x, want.fix.y, want.fix.yaw)
 
+
+def test_prepared_detectors_serve_a_whole_pass_and_its_searches(bus_pass):
+    """prepare builds, before any frame, every detector a pass needs: the frame thread's, the workers'
+    and (through the work it returns) the search thread's. A pass then acquires on the search thread and
+    tracks on the frame thread, at every pyramid level, without building another."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from toptag.detection import TagDetector
+
+    camera, bus, frames = bus_pass
+    p = RsuPipeline(camera, PipelineSettings(workers=2))
+    search = ThreadPoolExecutor(max_workers=1)
+    before = len(TagDetector._alive)
+    search.submit(p.prepare([bus.family])).result()
+    built = len(TagDetector._alive) - before
+    assert built == 6  # plain and threaded here and on the search thread, one per worker
+    p.add_vehicle(bus)
+    modes = []
+    for seq, (t_ns, img, _, _) in enumerate(frames):
+        result = p.process(img, t_ns, seq, defer_search=True)
+        if result.search_deferred:
+            search.submit(p.search_work()).result()
+            result = p.continue_search()
+        modes += [result.vehicles[bus.id].mode]
+    search.shutdown()
+    assert "acquired" in modes and modes.count("tracked") >= 20
+    assert len(TagDetector._alive) == before + built
+
+
 def test_plane_scale_is_the_shortest_and_longest_image_of_a_metre_on_the_roof():
     """plane_scale_px against brute force: a 0.5 m segment of the roof plane turned through 180 degrees,
     its image's length per metre, shortest and longest; a tag's minor extent is its side times the

@@ -180,7 +180,7 @@ class TagDetector:
 
     def detect_raw(self, gray: np.ndarray, offset=(0, 0), upsample: int = 1,
                    unrefined_pass: bool | None = None, expected: Collection[tuple[str, int]] | None = None,
-                   min_contrast: int | None = None) -> list[RawDetection]:
+                   min_contrast: int | None = None, decimate: float | None = None) -> list[RawDetection]:
         """Every tag of the detector's families in `gray` (uint8, 2-D); `offset` is the (x, y) of
         gray's first pixel in the full frame when gray is a crop. `upsample` > 1 enlarges the image
         (bicubic) before detection: far tags with cells of 1-2 px are decoded far more reliably and
@@ -190,7 +190,10 @@ class TagDetector:
         a coarser level): the second pass, there to find what the first misses, runs only if the first
         missed one of them. min_contrast: the grey levels by which a region's brightest pixels must
         exceed its darkest for the quad search to binarise it (AprilTag's min_white_black_diff; default
-        the library's 5): a higher floor leaves flat, noisy regions out, and tags of less contrast."""
+        the library's 5): a higher floor leaves flat, noisy regions out, and tags of less contrast.
+        decimate: the quad search's decimation for this call (default the settings' quad_decimate): the
+        C library reads it at every detection, so one detector serves every pyramid level, and its decode
+        table (tens of milliseconds to build) is built once."""
         if gray.dtype != np.uint8 or gray.ndim != 2:
             raise ValueError("detector input must be a 2-D uint8 image")
         if self._detector.tag_detector_ptr is None:
@@ -203,12 +206,13 @@ class TagDetector:
         shift = np.array([offset[0] + PUPIL_TO_OPENCV, offset[1] + PUPIL_TO_OPENCV])
         s = self.settings
         self._thresholds.min_white_black_diff = self._min_contrast if min_contrast is None else int(min_contrast)
+        self._head.quad_decimate = s.quad_decimate if decimate is None else float(decimate)
         try:
             out = self._decoded(img, upsample, shift)
             second = s.unrefined_pass if unrefined_pass is None else unrefined_pass
             if second and expected is not None:
                 second = not set(expected) <= {(d.family, d.tag_id) for d in out}
-            if s.refine_edges and second and s.quad_decimate == 1.0:
+            if s.refine_edges and second and self._head.quad_decimate == 1.0:
                 self._head.refine_edges = 0
                 try:
                     extra = self._decoded(img, upsample, shift)
@@ -217,6 +221,7 @@ class TagDetector:
                 out += [d for d in extra if not any(_same_tag(d, o) for o in out)]
         finally:
             self._thresholds.min_white_black_diff = self._min_contrast
+            self._head.quad_decimate = s.quad_decimate
         return out
 
     def gate(self, family: str) -> int:
@@ -243,7 +248,7 @@ class TagDetector:
         only when it blurs or sharpens the undecimated quad image (quad_sigma != 0, quad_decimate <= 1):
         then it gets a copy, as pupil would give it."""
         d, s = self._detector, self.settings
-        if s.quad_sigma != 0 and s.quad_decimate <= 1:
+        if s.quad_sigma != 0 and self._head.quad_decimate <= 1:
             img = img.copy()
         h, w = img.shape
         c_img = self._image_type(w, h, img.strides[0], img.ctypes.data_as(ctypes.POINTER(ctypes.c_uint8)))

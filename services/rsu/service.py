@@ -52,7 +52,8 @@ from toptag.hostclock import HostClockProbe
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.solvers import METHODS
 from toptag.sources import LatestFrameReader, SourceSettings, open_source, parse_source
-from toptag.vehicle import Vehicle
+from toptag.solvers.warmup import warm_up
+from toptag.vehicle import Vehicle, VehicleFile
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,15 @@ class RsuService:
         self.rsu_id = camera.id
         self.intersection = intersection
         self.pipeline = RsuPipeline(camera, settings)
+        self._prepared: set[tuple[str, ...]] = set()
+        self._searcher = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"search-{self.rsu_id}",
+                                            initializer=_lower_priority, initargs=(SEARCH_NICE,))
+        self._search_run: Future | None = None  # the deferred search's work, on self._searcher
+        # What the first frames of the first session would otherwise wait for: the solvers' kernels
+        # (loaded from numba's cache: a few tenths of a second, seconds on a loaded machine) and the
+        # detectors of the usual tag family.
+        warm_up()
+        self._prepare({VehicleFile.model_fields["family"].default})
         self.counters = RsuCounters()
         self.msg_counters = MessageCounters()
         self.started_ns = time.time_ns()
@@ -122,14 +132,19 @@ class RsuService:
                         if source is None else None)
         self._bad_logged = 0
         self._search_frame = None  # (processing start, clock, seq, modes) of the frame whose search is deferred
-        self._searcher = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"search-{self.rsu_id}",
-                                            initializer=_lower_priority, initargs=(SEARCH_NICE,))
-        self._search_run: Future | None = None  # the deferred search's work, on self._searcher
         self._watch = watch_buses(session, intersection,
                                   on_appear=lambda bus: self._changes.put(("appear", bus)),
                                   on_vanish=lambda bus: self._changes.put(("leave", bus, "liveliness lost")),
                                   logger=log)
         self._changes.put(("query", None))
+
+    def _prepare(self, families: set[str]) -> None:
+        """The detectors of buses of these families built before a frame needs them: the frame loop's and
+        the detection workers' here, the search thread's on it (queued before any search)."""
+        key = tuple(sorted(families))
+        if key not in self._prepared:
+            self._prepared.add(key)
+            self._searcher.submit(self.pipeline.prepare(key))
 
     def _on_diagnosis(self, m: RsuDiagnosis) -> None:
         before = self._diagnoses.get(m.bus_id)
@@ -190,6 +205,7 @@ class RsuService:
                         "will not be used for either", a.bus_id, sorted(t for _, t in clash))
         self._sessions[a.bus_id] = a
         self.pipeline.add_vehicle(vehicle)
+        self._prepare({v.family for v in self.pipeline.vehicles.values()})
         self._note_position(a)
         self._fix_pubs.setdefault(a.bus_id, MessagePublisher(
             self.session, keys.pose_fix(self.intersection, a.bus_id, self.rsu_id), PoseFix))

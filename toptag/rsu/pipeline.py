@@ -10,7 +10,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Callable, Literal
+from typing import Callable, Iterable, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -203,28 +203,48 @@ HINT_MIN_SPACING_S = 0.08
 
 
 class _DetectorPool:
-    """One detector per thread, decimation and threading: pupil-apriltags detectors are not thread-safe, and its
-    ctypes calls release the GIL, so crops really run on both cores."""
+    """One detector per thread and threading (each job sets its own decimation): pupil-apriltags detectors
+    are not thread-safe, and its ctypes calls release the GIL, so crops really run on both cores."""
 
     def __init__(self, families, settings: DetectorSettings, workers: int):
         self.families, self.settings, self.workers = families, settings, workers
         self._local = threading.local()
         self.executor = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
 
-    def _detector(self, decimate: float, threaded: bool = False) -> TagDetector:
+    def _detector(self, threaded: bool = False) -> TagDetector:
         cache = self._local.__dict__.setdefault("detectors", {})
-        key = (decimate, threaded)
-        if key not in cache:
+        if threaded not in cache:
             nthreads = max(self.settings.nthreads, self.workers) if threaded else self.settings.nthreads
-            s = self.settings.model_copy(update={"quad_decimate": float(decimate), "nthreads": nthreads})
-            cache[key] = TagDetector(self.families, s)
-        return cache[key]
+            cache[threaded] = TagDetector(self.families, self.settings.model_copy(update={"nthreads": nthreads}))
+        return cache[threaded]
+
+    def prepare_here(self) -> None:
+        """Build the calling thread's detectors now (run_here uses them)."""
+        self._detector(False)
+        if self.workers > 1:
+            self._detector(True)
+
+    def prepare_workers(self) -> None:
+        """Build each worker's detector now: every worker takes one build and waits for the others, so
+        that no worker builds twice while another builds none."""
+        if self.executor is None:
+            return
+        barrier = threading.Barrier(self.workers)
+
+        def build(_) -> None:
+            self._detector(False)
+            try:
+                barrier.wait(timeout=30.0)
+            except threading.BrokenBarrierError:
+                pass  # a worker was late: it builds its detector on its first job instead
+
+        list(self.executor.map(build, range(self.workers)))
 
     def _one(self, gray: np.ndarray, job: DetectJob, threaded: bool = False) -> list[RawDetection]:
         b = job.box
-        return self._detector(job.decimate, threaded).detect_raw(
+        return self._detector(threaded).detect_raw(
             gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample, None if job.thorough else False, job.expect,
-            job.min_contrast)
+            job.min_contrast, job.decimate)
 
     def run_here(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[list[RawDetection]]:
         """Detections per job, in job order, each on the calling thread (a costly one on the detector's own
@@ -338,11 +358,22 @@ class RsuPipeline:
         tracks = self._hints.get(vid)
         return max(tracks.values(), key=lambda tr: tr.t_ns) if tracks else None
 
-    def _pool(self) -> _DetectorPool:
-        families = tuple(sorted({v.family for v in self.vehicles.values()}))
+    def _pool(self, families: tuple[str, ...] | None = None) -> _DetectorPool:
+        if families is None:
+            families = tuple(sorted({v.family for v in self.vehicles.values()}))
         if families not in self._pools:
             self._pools[families] = _DetectorPool(families, self.settings.detector, self.settings.workers)
         return self._pools[families]
+
+    def prepare(self, families: Iterable[str]) -> Callable[[], None]:
+        """Build now the detectors that buses of these tag families will need, on the calling thread (the
+        one that processes frames) and the pool's workers; returns the same work for the thread that will
+        run search_work. A detector takes tens of milliseconds to build (its decode table), a few times
+        that on a loaded machine: built on a session's first frames it would hold them up."""
+        pool = self._pool(tuple(sorted(set(families))))
+        pool.prepare_here()
+        pool.prepare_workers()
+        return pool.prepare_here
 
     # ---- per frame ----------------------------------------------------------------------------
     def process(self, gray: np.ndarray | Callable[[], np.ndarray], t_ns: int, seq: int | None = None,
