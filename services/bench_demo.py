@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -71,6 +72,26 @@ def figures(report: dict) -> dict:
             "exit_codes": report.get("exit_codes", {})}
 
 
+_SENT = re.compile(r"frames sent p50 ([\d.]+) / p99 ([\d.]+) ms after their tick")
+_ARRIVED = re.compile(r"frames in session: arrived p50 ([\d.]+) / p99 ([\d.]+) ms after their capture stamp, "
+                      r"waited p50 ([\d.]+) / p99 ([\d.]+) ms")
+
+
+def frame_delays(logs: Path) -> dict:
+    """Where a frame's age before its processing goes, from the processes' final log lines: the simulator
+    sending it after its tick, each RSU receiving it after its capture stamp (sending included) and its
+    frame loop taking it after its arrival; [p50, p99] ms each."""
+    out: dict = {}
+    sim = logs / "sim.log"
+    if sim.exists() and (m := _SENT.search(sim.read_text(errors="replace"))):
+        out["sim_sent_after_tick"] = [float(m[1]), float(m[2])]
+    for log_file in sorted(logs.glob("rsu-*.log")):
+        if m := _ARRIVED.search(log_file.read_text(errors="replace")):
+            out[log_file.stem] = {"arrived_after_capture": [float(m[1]), float(m[2])],
+                                  "waited_for_loop": [float(m[3]), float(m[4])]}
+    return out
+
+
 def _fmt(v, spec: str = ".1f") -> str:
     return "-" if v is None else format(v, spec)
 
@@ -95,6 +116,15 @@ def table(f: dict) -> str:
                      f"processing {m['before_processing'][0]:.0f} / {m['before_processing'][1]:.0f}, processing "
                      f"{m['processing'][0]:.0f} / {m['processing'][1]:.0f}, transit {m['transit'][0]:.0f} / "
                      f"{m['transit'][1]:.0f}")
+    delays = f.get("frame_delays_ms") or {}
+    if delays:
+        sent = delays.get("sim_sent_after_tick")
+        lines.append("frames before processing, p50 / p99 ms: "
+                     + (f"sim sent {sent[0]:.0f} / {sent[1]:.0f} after the tick; " if sent else "")
+                     + "; ".join(f"{rid} arrived {d['arrived_after_capture'][0]:.0f} / "
+                                 f"{d['arrived_after_capture'][1]:.0f}, waited {d['waited_for_loop'][0]:.0f} / "
+                                 f"{d['waited_for_loop'][1]:.0f}"
+                                 for rid, d in delays.items() if rid.startswith("rsu-")))
     ok = f["fused_ok_in_session"]
     lines.append(f"fused status ok while in session: {_fmt(None if ok['fraction'] is None else 100 * ok['fraction'])} %"
                  f" of {ok['samples']} samples")
@@ -111,13 +141,15 @@ def main(argv: list[str]) -> int:
 
     with tempfile.TemporaryDirectory(prefix="toptag-bench-demo-") as tmp:
         report_path = Path(tmp) / "report.json"
-        demo_args = ["--duration", str(args.duration), "--report", str(report_path), "--period", "10"]
+        logs = Path(args.logs) if args.logs else Path(tmp) / "logs"
+        demo_args = ["--duration", str(args.duration), "--report", str(report_path), "--period", "10",
+                     "--logs", str(logs)]
         demo_args += ["--scenario", args.scenario] if args.scenario else []
-        demo_args += ["--logs", args.logs] if args.logs else []
         code = demo.main(demo_args)
         if not report_path.exists():
             return code or 1
         f = figures(json.loads(report_path.read_text()))
+        f["frame_delays_ms"] = frame_delays(logs)
     print("toptag bench demo:\n" + table(f))
     if args.out:
         Path(args.out).write_text(json.dumps(f, indent=1))

@@ -102,6 +102,7 @@ class SensorLoop(threading.Thread):
         self.world, self.pubs, self.stop_event, self.end_ns = world, pubs, stop, end_ns
         self.counts: dict[str, int] = defaultdict(int)
         self.max_delay_ns = 0  # worst publish delay of an IMU sample behind its time, since last read
+        self.frame_delays_ns: list[int] = []  # each frame's publication behind its tick, over the run
         self.error: BaseException | None = None
         # Computed, not yet published: (publisher, count key, [(t_ns, message)] in time order, next index).
         self._queues: list[list] = []
@@ -186,6 +187,7 @@ class SensorLoop(threading.Thread):
                 self.counts[kind] += j - i
                 if kind == "frame":
                     self.frame_published(items[i][1].rsu_id)
+                    self.frame_delays_ns.append(time.time_ns() - items[i][0])
                 elif kind == "imu":
                     self.max_delay_ns = max(self.max_delay_ns, time.time_ns() - items[j - 1][0])
             q[3] = j
@@ -291,10 +293,12 @@ def run(world: World, session, stop: threading.Event, duration_s: float | None =
             sensors.flush(t_stop)  # frames rendered for ticks before the stop that it had not sent yet
         stats.all_render_ms.extend(stats.render_ms)
         ms = np.asarray(stats.all_render_ms) if stats.all_render_ms else np.zeros(1)
+        late = np.asarray(sensors.frame_delays_ns or [0]) / 1e6
         log.info("sim stopped after %.1f s: frames %s; skipped %d; render+encode p50 %.1f ms p90 %.1f ms; "
-                 "imu %d truth %d gnss %d", (time.time_ns() - t0) / NS_PER_S,
-                 ", ".join(f"{r} {k}" for r, k in stats.published.items()), sum(stats.skipped.values()),
-                 np.percentile(ms, 50), np.percentile(ms, 90), sensors.counts["imu"], sensors.counts["truth"],
+                 "frames sent p50 %.1f / p99 %.1f ms after their tick; imu %d truth %d gnss %d",
+                 (time.time_ns() - t0) / NS_PER_S, ", ".join(f"{r} {k}" for r, k in stats.published.items()),
+                 sum(stats.skipped.values()), np.percentile(ms, 50), np.percentile(ms, 90),
+                 np.percentile(late, 50), np.percentile(late, 99), sensors.counts["imu"], sensors.counts["truth"],
                  sensors.counts["gnss"])
         pubs.close()
     if sensors.error is not None:

@@ -49,8 +49,18 @@ def test_bench_demo_prints_and_writes_every_figure(tmp_path):
     seen = f["fused_ok_in_view"]  # the samples in session with the bus in some camera's view, of those scored
     assert seen["samples"] is not None and seen["samples"] <= ok["samples"], (seen, ok)
     assert seen["fraction"] is None or 0 <= seen["fraction"] <= 1
+    # where a frame's age before processing goes: the simulator's sending, each RSU's receiving and taking
+    delays = f["frame_delays_ms"]
+    sent = delays["sim_sent_after_tick"]
+    assert 0 <= sent[0] <= sent[1], delays
+    in_session = {rid for rid, r in f["rsus"].items() if r["processed"]}
+    assert in_session and in_session <= set(delays), delays
+    for rid in in_session:
+        d = delays[rid]
+        assert d["arrived_after_capture"][0] <= d["arrived_after_capture"][1], d
+        assert 0 <= d["waited_for_loop"][0] <= d["waited_for_loop"][1], d
     assert all(code == 0 for code in f["exit_codes"].values()), f["exit_codes"]
-    assert "fix latency p50" in p.stdout and "cores in all" in p.stdout and "fused status ok" in p.stdout
+    assert "frames before processing" in p.stdout and "fix latency p50" in p.stdout and "cores in all" in p.stdout and "fused status ok" in p.stdout
 
 
 def test_figures_from_a_demo_report():

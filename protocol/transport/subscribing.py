@@ -75,6 +75,8 @@ class SafeSubscriber(Generic[M]):
         self._slot: zenoh.Sample | None = None  # latest-only pull: the newest sample, not yet taken
         self._overwritten = 0  # samples the slot lost since the last one taken
         self.arrived = 0  # latest-only pull: samples that reached the slot
+        self._slot_arrival_ns = 0
+        self.taken_arrival_ns = 0  # latest-only pull: when the sample taken last reached the slot (time.time_ns)
         self._arrived = threading.Condition()
         if latest_only:
             self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._keep_newest))
@@ -93,7 +95,7 @@ class SafeSubscriber(Generic[M]):
             if self._slot is not None:
                 self._overwritten += 1
                 self.counters.inc(SKIPPED, self._name, self.key)
-            self._slot = sample
+            self._slot, self._slot_arrival_ns = sample, time.time_ns()
             self.arrived += 1
             self._arrived.notify()
 
@@ -105,6 +107,8 @@ class SafeSubscriber(Generic[M]):
                 self._arrived.wait_for(lambda: self._slot is not None or self._closed.is_set(), timeout)
             sample, lost = self._slot, self._overwritten
             self._slot, self._overwritten = None, 0
+            if sample is not None:
+                self.taken_arrival_ns = self._slot_arrival_ns
             return sample, lost
 
     # -- decoding and accounting

@@ -83,6 +83,11 @@ class RsuCounters:
     fixes_published: int = 0
     active_s: float = 0.0
     detect_ns: list[int] = field(default_factory=list)  # since the last status
+    # Zenoh frames in session, over the run (logged at the end): from the capture stamp to the frame's
+    # arrival here, and from its arrival to the frame loop taking it: where a fix's age before its
+    # processing goes.
+    delivery_ns: list[int] = field(default_factory=list)
+    wait_ns: list[int] = field(default_factory=list)
 
 
 class RsuService:
@@ -233,6 +238,9 @@ class RsuService:
         if not self._sessions:
             self.counters.frames_idle += 1  # no bus announced: no decoding, no detection
             return
+        arrival = self._frames.taken_arrival_ns
+        self.counters.delivery_ns.append(arrival - frame.capture_time_ns)
+        self.counters.wait_ns.append(time.time_ns() - arrival)
         self.process_gray(lambda: frame_to_gray(frame), frame.capture_time_ns, frame.seq, frame.clock)
 
     def handle_captured(self, frame) -> None:
@@ -413,6 +421,11 @@ class RsuService:
             self.source.stop()
 
     def close(self) -> None:
+        c = self.counters
+        if c.delivery_ns:
+            (d50, d99), (w50, w99) = (np.percentile(v, [50, 99]) / 1e6 for v in (c.delivery_ns, c.wait_ns))
+            log.info("%d frames in session: arrived p50 %.1f / p99 %.1f ms after their capture stamp, waited "
+                     "p50 %.1f / p99 %.1f ms for the frame loop", len(c.delivery_ns), d50, d99, w50, w99)
         self._searcher.shutdown(wait=True, cancel_futures=True)
         for s in self._subs:
             s.close()
