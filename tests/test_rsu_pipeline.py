@@ -433,10 +433,9 @@ def test_a_tracked_buses_fix_is_final_before_the_frames_search_runs(bus_pass):
 
 def test_a_deferred_search_runs_between_frames_and_its_find_is_tracked_after(bus_pass):
     """process(defer_search=True) only begins a due search (the unfound bus "waiting", nothing found yet);
-    continue_search runs a batch of its jobs and stops while told that a newer frame waits; the next
-    frame is processed meanwhile and begins no second search; once the search ends, its result is its own
-    frame's (the bus acquired there, the fix stamped with that frame's time), and the bus is tracked from
-    the next frame on."""
+    the next frame is processed meanwhile and begins no second search; once the search ends
+    (continue_search), its result is its own frame's (the bus acquired there, the fix stamped with that
+    frame's time), and the bus is tracked from the next frame on."""
     camera, bus, frames = bus_pass
     shown = [i for i, f in enumerate(frames) if f[3]]
     (t1, img1, _, _), (t2, img2, _, _), (t3, img3, _, _) = (frames[i] for i in shown[2:5])
@@ -445,20 +444,16 @@ def test_a_deferred_search_runs_between_frames_and_its_find_is_tracked_after(bus
     first = p.process(img1, t1, defer_search=True)
     assert first.search_deferred and not first.acquired and p.search_pending
     assert first.vehicles[bus.id].mode == "waiting" and first.vehicles[bus.id].fix is None
-    jobs = len(p._search.jobs)
-    assert jobs > p.settings.workers
-    assert p.continue_search(should_yield=lambda: True) is None  # one batch, then the newer frame's turn
-    assert len(p._search.found) == p.settings.workers
+    assert p._search.jobs and not p._search.found  # begun, nothing run yet
     second = p.process(img2, t2, defer_search=True)
     assert not second.search_deferred and second.vehicles[bus.id].mode == "waiting"
     got = []
-    done = p.continue_search(should_yield=lambda: False, on_vehicle=got.append)
+    done = p.continue_search(on_vehicle=got.append)
     assert done is not None and not p.search_pending and done.acquired and done.t_ns == t1
     vr = done.vehicles[bus.id]
     assert got == [vr] and vr.mode == "acquired" and vr.fix is not None and vr.fix.t_ns == t1
     third = p.process(img3, t3, defer_search=True)
     assert third.vehicles[bus.id].mode == "tracked" and third.vehicles[bus.id].fix is not None
-
 
 
 def test_a_deferred_searchs_work_runs_on_another_thread_while_frames_go_on_and_ends_as_inline(bus_pass):
@@ -471,7 +466,7 @@ def test_a_deferred_searchs_work_runs_on_another_thread_while_frames_go_on_and_e
     inline = RsuPipeline(camera)
     inline.add_vehicle(bus)
     inline.process(img1, t1, defer_search=True)
-    want = inline.continue_search(should_yield=lambda: False).vehicles[bus.id]
+    want = inline.continue_search().vehicles[bus.id]
     p = RsuPipeline(camera)
     p.add_vehicle(bus)
     assert p.process(img1, t1, defer_search=True).search_deferred

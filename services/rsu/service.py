@@ -325,9 +325,9 @@ class RsuService:
             self._search_run = self._searcher.submit(work)
 
     def continue_search(self) -> None:
-        """Run the deferred search until a newer frame waits (at once when its work has run on the search
-        thread); when it ends, publish its fixes and its frame's detections again with the searched buses'
-        modes (its processing counted from the frame's start: the frames tracked in between included)."""
+        """End the deferred search whose work has run on the search thread: publish its fixes and its
+        frame's detections again with the searched buses' modes (its processing counted from the frame's
+        start: the frames tracked in between included)."""
         t0, clock, seq, modes = self._search_frame
         publish, published = self._publisher(t0, clock)
         try:

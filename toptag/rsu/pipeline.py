@@ -163,8 +163,8 @@ class FrameResult:
 
 @dataclass
 class _Search:
-    """An acquisition search begun on one frame and run, a few jobs at a time, between later frames
-    (RsuPipeline.process(defer_search=True), continue_search)."""
+    """An acquisition search begun on one frame and run while later frames are processed: its work on
+    another thread (RsuPipeline.process(defer_search=True), search_work), ended by continue_search."""
 
     t_ns: int
     seq: int | None
@@ -174,7 +174,7 @@ class _Search:
     jobs: list[DetectJob]  # largest first
     pool: "_DetectorPool"
     wanted: frozenset = frozenset()  # (family, tag id) of the buses sought: the coarse finds worth confirming
-    found: list = field(default_factory=list)  # detections of jobs[:len(found)]
+    found: list = field(default_factory=list)  # detections per job, once they have run
     detect_s: float = 0.0
     raw: list | None = None  # all its detections, once its work has run (RsuPipeline.search_work)
     handed_out: bool = False  # its work was given to another thread (search_work)
@@ -505,18 +505,15 @@ class RsuPipeline:
 
         return work
 
-    def continue_search(self, should_yield: Callable[[], bool] | None = None,
-                        on_vehicle: Callable[[VehicleResult], None] | None = None) -> FrameResult | None:
-        """Go on with the deferred search: a batch of its jobs (one per worker) at least, then more until
-        should_yield() says a newer frame waits. When it ends: its frame's result for the buses it sought
-        (mode "acquired", or "searching" when not found; a bus found meanwhile by other means, or gone, is
-        left out), each also to on_vehicle. None while it goes on, or when there is none."""
+    def continue_search(self, on_vehicle: Callable[[VehicleResult], None] | None = None) -> FrameResult | None:
+        """End the deferred search (running its work here unless search_work handed it out): its frame's
+        result for the buses it sought (mode "acquired", or "searching" when not found; a bus found
+        meanwhile by other means, or gone, is left out), each also to on_vehicle. None when there is
+        none, or while its work runs on another thread."""
         s = self._search
         if s is None or (s.handed_out and s.raw is None):  # none, or its work runs elsewhere
             return None
-        raw = s.raw if s.raw is not None else self._run_search(s, should_yield)
-        if raw is None:
-            return None
+        raw = s.raw if s.raw is not None else self._run_search(s)
         self._search = None
         t0 = time.perf_counter()
         result = FrameResult(s.t_ns, acquired=True, pixels_searched=s.pixels, search_cost_px=s.cost_px)
@@ -537,22 +534,13 @@ class RsuPipeline:
         result.solve_ms = (time.perf_counter() - t0) * 1e3
         return result
 
-    def _run_search(self, s: _Search, should_yield: Callable[[], bool] | None = None,
-                    alone: bool = False) -> list[RawDetection] | None:
-        """The search's detections (coarse finds confirmed at full resolution), once all its jobs have run;
-        with should_yield, a batch of jobs at a time, returning None when it says to stop. alone: every job
-        on the calling thread, one after the other (search_work)."""
-        step = len(s.jobs) if should_yield is None else max(1, self.settings.workers)
+    def _run_search(self, s: _Search, alone: bool = False) -> list[RawDetection]:
+        """The search's detections (coarse finds confirmed at full resolution). alone: every job on the
+        calling thread, one after the other (search_work); else on the pool's workers."""
         run = s.pool.run_here if alone else s.pool.run
-        ran = 0
         t0 = time.perf_counter()
         try:
-            while len(s.found) < len(s.jobs):
-                if ran and should_yield is not None and should_yield():
-                    return None
-                batch = s.jobs[len(s.found):len(s.found) + step]
-                s.found += run(s.gray, batch)
-                ran += 1
+            s.found = run(s.gray, s.jobs)
             raw = [d for job, found in zip(s.jobs, s.found) if job.decimate == 1.0 for d in found]
             coarse = [d for job, found in zip(s.jobs, s.found) if job.decimate != 1.0 for d in found
                       if (d.family, d.tag_id) in s.wanted]
