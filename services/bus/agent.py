@@ -41,6 +41,7 @@ from protocol.transport import (
     subscribe_messages,
 )
 from protocol.transport.runner import ServiceSettings, add_service_arguments, run_service
+from toptag.fusion import kernels as filter_kernels
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.fusion.presence import IntersectionPresence
 from toptag.hostclock import HostClockProbe
@@ -84,6 +85,9 @@ class BusAgent:
         self.counters = MessageCounters()
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        # The filter's compiled steps loaded from numba's cache now (tenths of a second of CPU), not at the
+        # first fix (toptag/solvers/warmup.py fills the cache).
+        filter_kernels.warm_up()
         self.filter = BusFilter(self.filter_config)
         self.filter_resets = 0
         self._past_paths: dict[str, int] = {}  # fix counts by path of the filters before this one

@@ -16,7 +16,8 @@ measures
 through the bus's position in the image: how it moves a fix changes as the bus crosses the view (on
 the fusion study about half of it varies over one pass). So eps is a first-order Gauss-Markov
 process over the distance the bus drives: eps <- rho eps + sqrt(1 - rho^2) w, rho = exp(-|v| dt /
-corr_m). Standing still, the bias stands still; over corr_m metres it is largely a new one.
+corr_m). Standing still, the bias stands still; over corr_m metres it is largely a new one (the
+filter's prediction step does it: toptag.fusion.kernels.predict).
 
 `FilterConfig.calib_bias`: "estimate" (the states are updated by the fixes: the filter learns the
 RSUs' relative biases), "consider" (Schmidt: they are carried in the covariance, never updated:
@@ -24,8 +25,6 @@ consistent, and nothing is learnt), or "noise" (the calibration share stays whit
 
 Pure: no I/O."""
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
@@ -38,23 +37,4 @@ def bias_root(calib_cov: np.ndarray) -> np.ndarray:
     return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
 
 
-def decorrelate(x: np.ndarray, P: np.ndarray, lo: int, hi: int, rho: float) -> None:
-    """In place: the bias entries x[lo:hi] after a Gauss-Markov step of correlation rho (their prior
-    covariance is I)."""
-    if rho >= 1.0 or hi <= lo:
-        return
-    x[lo:hi] *= rho
-    P[lo:hi, :] *= rho
-    P[:, lo:hi] *= rho
-    k = np.arange(lo, hi)
-    P[k, k] += 1.0 - rho * rho
-
-
-def correlation(speed: float, dt: float, corr_m: float) -> float:
-    """rho over dt seconds at `speed`: exp(-distance / corr_m)."""
-    if corr_m == math.inf:
-        return 1.0
-    return math.exp(-abs(speed) * dt / corr_m)
-
-
-__all__ = ["BIAS_DIM", "bias_root", "correlation", "decorrelate"]
+__all__ = ["BIAS_DIM", "bias_root"]

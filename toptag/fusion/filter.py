@@ -9,6 +9,8 @@ Prediction runs at the IMU rate (100 Hz): the accelerometer's forward axis drive
 random walk (continuous white yaw acceleration, so the yaw/yaw-rate coupling integrates the gyro with
 the trapezoid rule), and each IMU sample updates yaw_rate + gyro_bias with the gyro and
 (1 + wheel_scale) * v with the wheel speed. A pose fix updates (x, y, yaw) with its own covariance.
+The prediction, the IMU update and the Kalman update are compiled (toptag.fusion.kernels): a late fix
+re-runs the steps after it, and in numpy those steps were most of the bus agent's CPU.
 
 Back-projection: the filter keeps a ring buffer (`FilterConfig.buffer_s`, >= 1 s) of states,
 covariances, gate states and IMU inputs, one per IMU sample, and every fix in that window in the
@@ -59,7 +61,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from toptag.fix import Fix
-from toptag.fusion.biases import BIAS_DIM, bias_root, correlation, decorrelate
+from toptag.fusion import kernels
+from toptag.fusion.biases import BIAS_DIM, bias_root
 from toptag.fusion.offsets import motion_rate, pose_before
 from toptag.fusion.outcomes import FixOutcome, FixRecord, applied_count, count_outcomes
 from toptag.fusion.state import (
@@ -302,6 +305,11 @@ class BusFilter:
         self._q_k = c.wheel_scale_walk ** 2
         self._r_g = c.gyro_sigma ** 2
         self._r_w = c.wheel_sigma ** 2
+        q = np.empty(kernels.Q_LEN)  # the compiled steps' constants (toptag.fusion.kernels)
+        q[[kernels.Q_POS, kernels.Q_YAW, kernels.Q_V, kernels.Q_B, kernels.Q_K, kernels.Q_D, kernels.Q_A, kernels.R_G,
+           kernels.R_W, kernels.CORR_M]] = [self._q_pos, self._q_yaw, self._q_v, self._q_b, self._q_k, self._q_d,
+                                           self._q_a, self._r_g, self._r_w, c.calib_bias_corr_m]
+        self._q = q
         self._cap = np.array([c.gate_max_pos_sigma, c.gate_max_pos_sigma, c.gate_max_yaw_sigma])
         self._cons_var = np.asarray(c.consensus_sigma, dtype=float) ** 2
         self._cons_thr = chi2_3dof(c.consensus_probability)
@@ -367,9 +375,7 @@ class BusFilter:
         head = self._steps[-1]
         if t_ns <= head.t:  # start-up time after this sample
             return True
-        x, P, g = self._advance(head.x, head.P, head.g, head.t, head.u, t_ns, record=True)
-        x, P = self._imu_update(x, self._yaw_rate_noise(P, s_from_ns(t_ns - head.t)), u, g)
-        self._steps.append(_Step(t_ns, u, x, P, g))
+        self._steps.append(_Step(t_ns, u, *self._imu_step(head, t_ns, u)))
         self._dirty = len(self._steps)
         self._prune()
         return True
@@ -597,10 +603,7 @@ class BusFilter:
         pre, self._pre_imu = self._pre_imu, []
         for t, u in pre:
             if t > t0:
-                head = self._steps[-1]
-                xx, PP, g = self._advance(head.x, head.P, head.g, head.t, head.u, t, record=True)
-                xx, PP = self._imu_update(xx, self._yaw_rate_noise(PP, s_from_ns(t - head.t)), u, g)
-                self._steps.append(_Step(t, u, xx, PP, g))
+                self._steps.append(_Step(t, u, *self._imu_step(self._steps[-1], t, u)))
         self._dirty = len(self._steps)
         self._prune()
 
@@ -617,10 +620,8 @@ class BusFilter:
         upto = n - 1 if upto is None else min(upto, n - 1)
         i = max(self._dirty, 1)
         while i <= upto:
-            prev, cur = self._steps[i - 1], self._steps[i]
-            x, P, g = self._advance(prev.x, prev.P, prev.g, prev.t, prev.u, cur.t, record=True)
-            cur.x, cur.P = self._imu_update(x, self._yaw_rate_noise(P, s_from_ns(cur.t - prev.t)), cur.u, g)
-            cur.g = g
+            cur = self._steps[i]
+            cur.x, cur.P, cur.g = self._imu_step(self._steps[i - 1], cur.t, cur.u)
             i += 1
         self._dirty = max(self._dirty, upto + 1)
 
@@ -653,6 +654,29 @@ class BusFilter:
         return outcome
 
     # ------------------------------------------------------------------ propagation
+    def _imu_step(self, prev: _Step, t_ns: int, u):
+        """(x, P, gate) of the step at t_ns with IMU input u, from the step before: the prediction with
+        every buffered fix in between applied, the yaw rate's random step and the IMU update. Without a
+        fix in between (most steps) one compiled call."""
+        dt = s_from_ns(t_ns - prev.t)
+        g = prev.g
+        if bisect_right(self._fix_t, prev.t) == bisect_right(self._fix_t, t_ns) and t_ns > prev.t:
+            a = prev.u[1] if prev.u is not None else 0.0
+            n = len(prev.x)
+            if u is None:
+                x, P = kernels.imu_step(prev.x, prev.P, dt, a, self._q, len(g.clocks), False, 0.0, 0.0, False, n)
+            else:
+                x, P = kernels.imu_step(prev.x, prev.P, dt, a, self._q, len(g.clocks), True, u[0],
+                                        0.0 if u[2] is None else u[2], u[2] is not None, self._freeze_lo(g, n))
+            return x, P, g
+        x, P, g = self._advance(prev.x, prev.P, g, prev.t, prev.u, t_ns, record=True)
+        if u is None:
+            return x, self._yaw_rate_noise(P, dt), g
+        n = len(x)
+        x, P = kernels.imu_update(x, P, dt, self._q, u[0], 0.0 if u[2] is None else u[2], u[2] is not None,
+                                  self._freeze_lo(g, n))
+        return x, P, g
+
     def _advance(self, x, P, g, t_from: int, u, t_to: int, record: bool):
         """From the state at t_from to t_to, applying every buffered fix in (t_from, t_to]."""
         a = u[1] if u is not None else 0.0
@@ -677,41 +701,9 @@ class BusFilter:
         return x, P, g
 
     def _predict(self, x, P, dt: float, a: float, g: _Gate):
-        th, v, w = x[ST_YAW], x[ST_SPEED], x[ST_YAW_RATE]
-        thm = th + 0.5 * w * dt
-        c, s = math.cos(thm), math.sin(thm)
-        d = v * dt + 0.5 * a * dt * dt
-        xn = x.copy()
-        xn[ST_X] += d * c
-        xn[ST_Y] += d * s
-        xn[ST_YAW] = wrap_angle(th + w * dt)
-        xn[ST_SPEED] = v + a * dt
-        n = len(x)
-        # F is the identity but for its rows x, y, yaw (Fr): F P F^T by rows then columns, O(n²)
-        Fr = _eye(n)[:3].copy()
-        Fr[ST_X, ST_YAW] = -d * s
-        Fr[ST_X, ST_SPEED] = dt * c
-        Fr[ST_X, ST_YAW_RATE] = -d * s * 0.5 * dt
-        Fr[ST_Y, ST_YAW] = d * c
-        Fr[ST_Y, ST_SPEED] = dt * s
-        Fr[ST_Y, ST_YAW_RATE] = d * c * 0.5 * dt
-        Fr[ST_YAW, ST_YAW_RATE] = dt
-        Pn = P.copy()
-        Pn[:3] = Fr @ P
-        Pn[:, :3] = Pn @ Fr.T
-        Pn[ST_X, ST_X] += self._q_pos * dt
-        Pn[ST_Y, ST_Y] += self._q_pos * dt
-        Pn[ST_YAW, ST_YAW] += self._q_yaw * dt
-        Pn[ST_SPEED, ST_SPEED] += self._q_v * dt
-        Pn[ST_GYRO_BIAS, ST_GYRO_BIAS] += self._q_b * dt
-        Pn[ST_WHEEL_SCALE, ST_WHEEL_SCALE] += self._q_k * dt
-        if n > STATE_DIM:
-            no = STATE_DIM + len(g.clocks)
-            k = np.arange(STATE_DIM, no)
-            Pn[k, k] += self._q_d * dt
-            if no < n:
-                decorrelate(xn, Pn, no, n, correlation(v + 0.5 * a * dt, dt, self.cfg.calib_bias_corr_m))
-        return xn, Pn
+        """(x, P) dt seconds on: constant forward acceleration a and yaw rate, midpoint heading; the time
+        offsets' random walk and the calibration biases' decorrelation (toptag.fusion.kernels.predict)."""
+        return kernels.predict(x, P, dt, a, self._q, len(g.clocks))
 
     def _yaw_rate_noise(self, P, dt: float):
         """The yaw rate's random step w (variance yaw_accel_density² * dt) over one interval of
@@ -728,45 +720,25 @@ class BusFilter:
         P[ST_YAW_RATE, ST_YAW_RATE] += qw
         return P
 
-    def _imu_update(self, x, P, u, g: _Gate):
-        if u is None:
-            return x, P
-        gyro, _, wheel = u
-        if wheel is None:
-            H = np.zeros((1, len(x)))
-            H[0, ST_YAW_RATE] = H[0, ST_GYRO_BIAS] = 1.0
-            nu = np.array([gyro - x[ST_YAW_RATE] - x[ST_GYRO_BIAS]])
-            R = np.array([[self._r_g]])
-        else:
-            H = np.zeros((2, len(x)))
-            H[0, ST_YAW_RATE] = H[0, ST_GYRO_BIAS] = 1.0
-            H[1, ST_SPEED] = 1.0 + x[ST_WHEEL_SCALE]
-            H[1, ST_WHEEL_SCALE] = x[ST_SPEED]
-            nu = np.array([gyro - x[ST_YAW_RATE] - x[ST_GYRO_BIAS], wheel - (1.0 + x[ST_WHEEL_SCALE]) * x[ST_SPEED]])
-            R = np.diag([self._r_g, self._r_w])
-        return self._kalman(x, P, H, nu, R, freeze=self._considered(g, len(x)))
-
     def _considered(self, g: _Gate, n: int) -> slice | None:
         """The states no update may move: the calibration biases when they are only considered."""
         return slice(STATE_DIM + len(g.clocks), n) if self._consider and g.biases else None
+
+    def _freeze_lo(self, g: _Gate, n: int) -> int:
+        """The first state an IMU update may not move (_considered; n: none)."""
+        return STATE_DIM + len(g.clocks) if self._consider and g.biases else n
 
     @staticmethod
     def _kalman(x, P, H, nu, R, PHt=None, S=None, freeze: slice | None = None):
         """Kalman update (Joseph form: right for any gain). `freeze`: states the update must leave
         alone (their gain rows zeroed, Schmidt "consider" states): the time offsets, which a flagged RSU's
-        biased fixes would otherwise pull."""
+        biased fixes would otherwise pull. Compiled: toptag.fusion.kernels.kalman."""
         if PHt is None:
             PHt = P @ H.T
             S = H @ PHt + R
-        K = np.linalg.solve(S, PHt.T).T
-        if freeze is not None:
-            K[freeze] = 0.0
-        xn = x + K @ nu
-        xn[ST_YAW] = wrap_angle(xn[ST_YAW])
-        # Joseph form (I - KH) P (I - KH)^T + K R K^T, expanded: O(n² m) for m measurements
-        KPHt = K @ PHt.T
-        Pn = P - KPHt - KPHt.T + K @ S @ K.T
-        return xn, 0.5 * (Pn + Pn.T)
+        n = len(x)
+        lo, hi = (n, n) if freeze is None else freeze.indices(n)[:2]
+        return kernels.kalman(x, P, PHt, S, np.asarray(nu, dtype=float), lo, hi)
 
     # ------------------------------------------------------------------ time offsets
     def _offset_prior(self, fix: Fix) -> float:

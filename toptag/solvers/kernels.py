@@ -6,41 +6,21 @@ step is a few dozen calls of 1-3 µs on arrays of 16 numbers, most of a solve's 
 loop a whole fit costs a few µs. The arithmetic is the numpy code's, so results agree to rounding.
 
 Cached: numba compiles each kernel on its first call (seconds of CPU for all of them: warmup.py does it
-ahead) and keeps the machine code beside this file (`__pycache__`; see `compiled` for where else), where
-later processes load it in milliseconds. NUMBA_CACHE_DIR, when set, is where it goes instead.
+ahead) and keeps the machine code beside this file (`__pycache__`; see toptag.jit.compiled for where else),
+where later processes load it in milliseconds. NUMBA_CACHE_DIR, when set, is where it goes instead.
 """
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 
-import numba
 import numpy as np
-from numba import njit
+
+from toptag.jit import compiled
 
 MIN_DEPTH = 1e-6  # model.MIN_DEPTH (model imports this module)
 COST_RTOL = 1e-10  # relative cost change that is rounding or negligible (~1e-5 sigma), not progress
 PROMISED_RTOL = 1e-7  # a step promising less than this fraction of the cost is not worth trying
 LAMBDA0 = 1e-4  # the damping it starts with; the promised-decrease stop applies while it is no larger
-
-
-def compiled(f):
-    """numba's njit with numpy's float semantics (x / 0 is inf or NaN, as the numpy code gave; Python's
-    would raise), the machine code cached on disk: beside this file, else in numba's user-wide cache
-    directory, else (a read-only installation and home, such as a read-only container) in the
-    temporary directory; where none is writable, compiled in every process."""
-    try:
-        return njit(cache=True, error_model="numpy")(f)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        pass
-    if not numba.config.CACHE_DIR:
-        numba.config.CACHE_DIR = os.path.join(tempfile.gettempdir(), "toptag-numba-cache")
-        try:
-            return njit(cache=True, error_model="numpy")(f)
-        except RuntimeError:
-            pass
-    return njit(error_model="numpy")(f)
 
 
 @compiled

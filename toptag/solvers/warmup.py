@@ -1,5 +1,6 @@
-"""`warm_up`: compile the solvers' numba kernels (toptag/solvers/kernels.py), or load them from numba's
-on-disk cache, before the first frame needs them.
+"""`warm_up`: compile the solvers' numba kernels (toptag/solvers/kernels.py) and the bus filter's
+(toptag/fusion/kernels.py), or load them from numba's on-disk cache, before the first frame or fix needs
+them.
 
 A process that solves without a cache compiles every kernel on its first solve (about 20 s of CPU on
 the 2-core AMD EPYC of README's figures, 2026-11-23). The project's setup (`make setup`), the test
@@ -25,8 +26,9 @@ from toptag.vehicle import Vehicle
 
 def warm_up() -> float:
     """Solve a few synthetic frames with every solver and path that reaches a kernel (two tags, a
-    garbled one that the outlier test screens, one tag, uncertain camera calibration). Returns the
-    wall seconds it took."""
+    garbled one that the outlier test screens, one tag, uncertain camera calibration), and run the bus
+    filter's steps. Returns the wall seconds it took."""
+    from toptag.fusion import kernels as fusion_kernels
     from toptag.solvers.api import METHODS, solve
 
     t0 = time.perf_counter()
@@ -43,6 +45,7 @@ def warm_up() -> float:
         for frame in (obs, garbled, obs[:1]):
             solve(bus, frame, method, weighting="principled")
     solve(bus, obs, "level", weighting="principled", calib_rot_sigma=1e-3, calib_trans_sigma=0.02)
+    fusion_kernels.warm_up()
     return time.perf_counter() - t0
 
 
@@ -50,11 +53,13 @@ def compiled_here() -> int:
     """How many kernel specialisations this process compiled, rather than loaded from numba's cache."""
     from numba.core.registry import CPUDispatcher
 
+    from toptag.fusion import kernels as fusion_kernels
     from toptag.solvers import kernels
 
-    return sum(sum(d.stats.cache_misses.values()) for d in vars(kernels).values() if isinstance(d, CPUDispatcher))
+    return sum(sum(d.stats.cache_misses.values()) for m in (kernels, fusion_kernels) for d in vars(m).values()
+               if isinstance(d, CPUDispatcher))
 
 
 if __name__ == "__main__":
     seconds = warm_up()
-    print(f"toptag solvers' kernels ready in {seconds:.2f} s ({compiled_here()} compiled, the rest from the cache)")
+    print(f"toptag solvers' and filter's kernels ready in {seconds:.2f} s ({compiled_here()} compiled, the rest from the cache)")

@@ -1,0 +1,235 @@
+"""Compiled kernels (numba) of the bus filter's IMU step: the prediction over one interval, the yaw
+rate's random step and the gyro/wheel update (toptag.fusion.filter: `_predict`, `_yaw_rate_noise`,
+`_imu_update`, `_kalman`), and the Kalman update a pose fix makes.
+
+Why compiled. A fix arriving ~100 ms late re-runs the ~10 IMU steps after its capture time; at 40
+fixes/s that is 4-5 steps per IMU sample received. Each step is a few dozen numpy calls on a state of
+7 + 4 (time offsets) + 3 per calibration-bias block entries, 1-3 µs each: most of the bus agent's CPU
+(`toptag bench bus`). As one compiled loop a step costs a few µs. The arithmetic is the numpy code's
+(F P F' by rows then columns, the Joseph form expanded, the gain by Gaussian elimination with partial
+pivoting as LAPACK's gesv), so results agree to rounding (tests/test_filter_reference.py).
+
+Cached on disk like the solvers' kernels (toptag.jit.compiled); `python -m
+toptag.solvers.warmup` compiles them ahead (`warm_up`)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from toptag.jit import compiled
+
+# Layout of `q`, the filter's constants, one array so that a call converts one argument, not ten.
+Q_POS, Q_YAW, Q_V, Q_B, Q_K, Q_D, Q_A, R_G, R_W, CORR_M = range(10)
+Q_LEN = 10
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+
+
+@compiled
+def wrap(a):
+    """toptag.geometry.wrap_angle of a float: (-pi, pi], the same value as its math.remainder for |a| <=
+    3 pi (one subtraction of 2 pi is exact there); beyond, by rounding a / 2 pi."""
+    if -3.0 * _PI <= a <= 3.0 * _PI:
+        w = a
+        if w > _PI:
+            w -= _TWO_PI
+        elif w < -_PI:
+            w += _TWO_PI
+    else:
+        w = a - np.rint(a / _TWO_PI) * _TWO_PI
+    return _PI if w == -_PI else w
+
+
+@compiled
+def predict(x, P, dt, a, q, n_clocks):
+    """(x, P) dt seconds on (filter._predict's model; x, P are not changed): constant forward
+    acceleration a and yaw rate, midpoint heading; F P F' + Q, the time offsets' walk, the calibration
+    biases' decorrelation over the distance driven."""
+    n = x.shape[0]
+    th, v, w = x[2], x[3], x[4]
+    thm = th + 0.5 * w * dt
+    c, s = math.cos(thm), math.sin(thm)
+    d = v * dt + 0.5 * a * dt * dt
+    xn = x.copy()
+    xn[0] += d * c
+    xn[1] += d * s
+    xn[2] = wrap(th + w * dt)
+    xn[3] = v + a * dt
+    # F is the identity but for its rows x, y, yaw: rows 0, 1, 2 of F P, then columns 0, 1, 2 of (F P) F'
+    f02, f03, f04 = -d * s, dt * c, -d * s * 0.5 * dt
+    f12, f13, f14 = d * c, dt * s, d * c * 0.5 * dt
+    f24 = dt
+    Pn = P.copy()
+    for j in range(n):
+        p0, p1, p2, p3, p4 = P[0, j], P[1, j], P[2, j], P[3, j], P[4, j]
+        Pn[0, j] = p0 + f02 * p2 + f03 * p3 + f04 * p4
+        Pn[1, j] = p1 + f12 * p2 + f13 * p3 + f14 * p4
+        Pn[2, j] = p2 + f24 * p4
+    for i in range(n):
+        p0, p1, p2, p3, p4 = Pn[i, 0], Pn[i, 1], Pn[i, 2], Pn[i, 3], Pn[i, 4]
+        Pn[i, 0] = p0 + f02 * p2 + f03 * p3 + f04 * p4
+        Pn[i, 1] = p1 + f12 * p2 + f13 * p3 + f14 * p4
+        Pn[i, 2] = p2 + f24 * p4
+    Pn[0, 0] += q[Q_POS] * dt
+    Pn[1, 1] += q[Q_POS] * dt
+    Pn[2, 2] += q[Q_YAW] * dt
+    Pn[3, 3] += q[Q_V] * dt
+    Pn[5, 5] += q[Q_B] * dt
+    Pn[6, 6] += q[Q_K] * dt
+    if n > 7:
+        no = 7 + n_clocks
+        for k in range(7, no):
+            Pn[k, k] += q[Q_D] * dt
+        corr_m = q[CORR_M]
+        if no < n and corr_m != math.inf:  # toptag.fusion.biases.correlation and decorrelate
+            rho = math.exp(-abs(v + 0.5 * a * dt) * dt / corr_m)
+            if rho < 1.0:
+                for k in range(no, n):
+                    xn[k] *= rho
+                for k in range(no, n):
+                    for j in range(n):
+                        Pn[k, j] *= rho
+                for i in range(n):
+                    for k in range(no, n):
+                        Pn[i, k] *= rho
+                for k in range(no, n):
+                    Pn[k, k] += 1.0 - rho * rho
+    return xn, Pn
+
+
+@compiled
+def kalman(x, P, PHt, S, nu, freeze_lo, freeze_hi):
+    """filter._kalman with PHt = P H' and S = H P H' + R given: the gain (its rows freeze_lo:freeze_hi
+    zeroed), x + K nu (yaw wrapped) and the Joseph form expanded, P - K PHt' - PHt K' + K S K',
+    symmetrised."""
+    n, m = PHt.shape
+    # K' = S^-1 PHt': Gaussian elimination with partial pivoting (gesv) on [S | PHt']
+    A = S.copy()
+    B = PHt.T.copy()
+    for col in range(m):
+        piv = col
+        for r in range(col + 1, m):
+            if abs(A[r, col]) > abs(A[piv, col]):
+                piv = r
+        if piv != col:
+            for j in range(m):
+                A[col, j], A[piv, j] = A[piv, j], A[col, j]
+            for j in range(n):
+                B[col, j], B[piv, j] = B[piv, j], B[col, j]
+        for r in range(col + 1, m):
+            f = A[r, col] / A[col, col]
+            for j in range(col + 1, m):
+                A[r, j] -= f * A[col, j]
+            for j in range(n):
+                B[r, j] -= f * B[col, j]
+    K = np.empty((n, m))
+    for col in range(m - 1, -1, -1):
+        for j in range(n):
+            t = B[col, j]
+            for k in range(col + 1, m):
+                t -= A[col, k] * K[j, k]
+            K[j, col] = t / A[col, col]
+    for i in range(freeze_lo, freeze_hi):
+        for k in range(m):
+            K[i, k] = 0.0
+    xn = x.copy()
+    for i in range(n):
+        t = 0.0
+        for k in range(m):
+            t += K[i, k] * nu[k]
+        xn[i] += t
+    xn[2] = wrap(xn[2])
+    KS = np.zeros((n, m))
+    for i in range(n):
+        for k in range(m):
+            t = 0.0
+            for l in range(m):
+                t += K[i, l] * S[l, k]
+            KS[i, k] = t
+    Pn = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            kp = 0.0
+            kpt = 0.0
+            ks = 0.0
+            for k in range(m):
+                kp += K[i, k] * PHt[j, k]
+                kpt += K[j, k] * PHt[i, k]
+                ks += KS[i, k] * K[j, k]
+            Pn[i, j] = P[i, j] - kp - kpt + ks
+    for i in range(n):
+        for j in range(i + 1, n):
+            t = 0.5 * (Pn[i, j] + Pn[j, i])
+            Pn[i, j] = t
+            Pn[j, i] = t
+        Pn[i, i] = 0.5 * (Pn[i, i] + Pn[i, i])
+    return xn, Pn
+
+
+@compiled
+def imu_update(x, P, dt, q, gyro, wheel, has_wheel, freeze_lo):
+    """The end of an IMU step (filter._yaw_rate_noise then _imu_update): the yaw rate's random step over
+    the interval dt, then the gyro (yaw_rate + gyro_bias) and, if has_wheel, the wheel speed ((1 +
+    wheel_scale) speed) update; the states from freeze_lo on are not moved (consider states)."""
+    n = x.shape[0]
+    if dt > 0:
+        qw = q[Q_A] * dt
+        P = P.copy()
+        P[2, 2] += qw * dt * dt / 4
+        P[2, 4] += qw * dt / 2
+        P[4, 2] += qw * dt / 2
+        P[4, 4] += qw
+    m = 2 if has_wheel else 1
+    PHt = np.empty((n, m))
+    S = np.empty((m, m))
+    nu = np.empty(m)
+    nu[0] = gyro - x[4] - x[5]
+    for i in range(n):
+        PHt[i, 0] = P[i, 4] + P[i, 5]
+    S[0, 0] = PHt[4, 0] + PHt[5, 0] + q[R_G]
+    if has_wheel:
+        h3, h6 = 1.0 + x[6], x[3]
+        nu[1] = wheel - (1.0 + x[6]) * x[3]
+        for i in range(n):
+            PHt[i, 1] = h3 * P[i, 3] + h6 * P[i, 6]
+        S[0, 1] = PHt[4, 1] + PHt[5, 1]
+        S[1, 0] = h3 * PHt[3, 0] + h6 * PHt[6, 0]
+        S[1, 1] = h3 * PHt[3, 1] + h6 * PHt[6, 1] + q[R_W]
+    return kalman(x, P, PHt, S, nu, freeze_lo, n)
+
+
+@compiled
+def imu_step(x, P, dt, a, q, n_clocks, has_u, gyro, wheel, has_wheel, freeze_lo):
+    """One whole IMU step without a fix in it: predict over dt, then imu_update (none if not has_u)."""
+    xn, Pn = predict(x, P, dt, a, q, n_clocks)
+    if not has_u:
+        if dt > 0:
+            qw = q[Q_A] * dt
+            Pn[2, 2] += qw * dt * dt / 4
+            Pn[2, 4] += qw * dt / 2
+            Pn[4, 2] += qw * dt / 2
+            Pn[4, 4] += qw
+        return xn, Pn
+    return imu_update(xn, Pn, dt, q, gyro, wheel, has_wheel, freeze_lo)
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel for the types the filter calls them with."""
+    n = 11
+    x = np.zeros(n)
+    x[3] = 5.0
+    P = np.eye(n)
+    q = np.full(Q_LEN, 1e-3)
+    q[CORR_M] = 20.0
+    x1, P1 = imu_step(x, P, 0.01, 0.1, q, 4, True, 0.01, 5.0, True, n)
+    imu_step(x1, P1, 0.01, 0.1, q, 2, False, 0.0, 0.0, False, n)
+    x2, P2 = predict(x1, P1, 0.005, 0.1, q, 4)
+    imu_update(x2, P2, 0.005, q, 0.01, 0.0, False, 9)
+    H = np.zeros((3, n))
+    H[0, 0] = H[1, 1] = H[2, 2] = 1.0
+    PHt = P2 @ H.T
+    kalman(x2, P2, PHt, H @ PHt + np.eye(3), np.zeros(3), 7, n)
+
+
+__all__ = ["Q_LEN", "imu_step", "imu_update", "kalman", "predict", "warm_up", "wrap"]
