@@ -26,13 +26,13 @@ SUMMARY = "summary"
 
 
 def pytest_configure(config):
-    """The solvers' compiled kernels into numba's on-disk cache once, before any test (or process a test
-    starts) solves: a process without the cache compiles them on its first solve, seconds of CPU
-    (toptag/solvers/warmup.py). xdist's workers start after the controller's configure."""
+    """The solvers' and the bus filter's compiled kernels into numba's on-disk cache once, before any test
+    (or process a test starts) solves or filters: a process without the cache compiles them on its first
+    call, seconds of CPU (toptag/solvers/warmup.py). xdist's workers start after the controller's configure."""
     if not hasattr(config, "workerinput"):
-        from toptag.solvers.warmup import warm_up
+        from toptag.solvers.warmup import warm_up_all
 
-        warm_up()
+        warm_up_all()
 
 
 def pytest_terminal_summary(terminalreporter, config):

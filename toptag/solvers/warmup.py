@@ -1,11 +1,11 @@
-"""`warm_up`: compile the solvers' numba kernels (toptag/solvers/kernels.py) and the bus filter's
-(toptag/fusion/kernels.py), or load them from numba's on-disk cache, before the first frame or fix needs
-them.
+"""`warm_up`: compile the solvers' numba kernels (toptag/solvers/kernels.py), or load them from numba's
+on-disk cache, before the first frame needs them; `warm_up_all`: those and the bus filter's
+(toptag/fusion/kernels.py, which the bus agent loads at its start).
 
 A process that solves without a cache compiles every kernel on its first solve (about 20 s of CPU on
 the 2-core AMD EPYC of README's figures, 2026-11-23). The project's setup (`make setup`), the test
-session and the Docker image build call this once, so that RSU processes find the cache; a process with
-the cache loads the kernels in a few tenths of a second.
+session and the Docker image build call warm_up_all once, so that RSU and bus processes find the cache;
+a process with the cache loads the kernels in a few tenths of a second.
 
     python -m toptag.solvers.warmup      # prints the seconds it took
 """
@@ -26,9 +26,8 @@ from toptag.vehicle import Vehicle
 
 def warm_up() -> float:
     """Solve a few synthetic frames with every solver and path that reaches a kernel (two tags, a
-    garbled one that the outlier test screens, one tag, uncertain camera calibration), and run the bus
-    filter's steps. Returns the wall seconds it took."""
-    from toptag.fusion import kernels as fusion_kernels
+    garbled one that the outlier test screens, one tag, uncertain camera calibration). Returns the
+    wall seconds it took."""
     from toptag.solvers.api import METHODS, solve
 
     t0 = time.perf_counter()
@@ -45,6 +44,16 @@ def warm_up() -> float:
         for frame in (obs, garbled, obs[:1]):
             solve(bus, frame, method, weighting="principled")
     solve(bus, obs, "level", weighting="principled", calib_rot_sigma=1e-3, calib_trans_sigma=0.02)
+    return time.perf_counter() - t0
+
+
+def warm_up_all() -> float:
+    """warm_up, and the bus filter's kernels run once (toptag.fusion.kernels.warm_up): what the project's
+    setup, the test session and the image build fill the cache with. Returns the wall seconds it took."""
+    from toptag.fusion import kernels as fusion_kernels
+
+    t0 = time.perf_counter()
+    warm_up()
     fusion_kernels.warm_up()
     return time.perf_counter() - t0
 
@@ -61,5 +70,6 @@ def compiled_here() -> int:
 
 
 if __name__ == "__main__":
-    seconds = warm_up()
-    print(f"toptag solvers' and filter's kernels ready in {seconds:.2f} s ({compiled_here()} compiled, the rest from the cache)")
+    seconds = warm_up_all()
+    print(f"toptag solvers' and filter's kernels ready in {seconds:.2f} s ({compiled_here()} compiled, the rest "
+          "from the cache)")
