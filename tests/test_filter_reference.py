@@ -11,8 +11,8 @@ Three filters: the default configuration (calibration biases considered), biases
 most three offset slots (slots given up and taken again), and calibration as noise with the drift
 detector off. The outputs: every 10th IMU sample's estimate (state and 7x7 covariance), every 100th
 the newest step's whole augmented state and covariance (time offsets, bias blocks), an estimate 7 ms
-beyond the newest sample, the decision add_fix returned for every fix, the final outcomes and d², the counts of every outcome,
-and the RSUs' time offsets.
+beyond the newest sample, the decision add_fix returned for every fix, the final outcomes and d², the
+counts of every outcome, and the RSUs' time offsets.
 
 Made with `python tests/test_filter_reference.py --write` (sim and the filter of that commit; the
 inputs are stored, so the test does not depend on the simulator staying the same)."""

@@ -307,8 +307,9 @@ class BusFilter:
         self._r_w = c.wheel_sigma ** 2
         q = np.empty(kernels.Q_LEN)  # the compiled steps' constants (toptag.fusion.kernels)
         q[[kernels.Q_POS, kernels.Q_YAW, kernels.Q_V, kernels.Q_B, kernels.Q_K, kernels.Q_D, kernels.Q_A, kernels.R_G,
-           kernels.R_W, kernels.CORR_M]] = [self._q_pos, self._q_yaw, self._q_v, self._q_b, self._q_k, self._q_d,
-                                           self._q_a, self._r_g, self._r_w, c.calib_bias_corr_m]
+           kernels.R_W, kernels.CORR_M, kernels.Q_J]] = [self._q_pos, self._q_yaw, self._q_v, self._q_b, self._q_k,
+                                                        self._q_d, self._q_a, self._r_g, self._r_w, c.calib_bias_corr_m,
+                                                        c.extrapolation_jerk_density ** 2]
         self._q = q
         self._cap = np.array([c.gate_max_pos_sigma, c.gate_max_pos_sigma, c.gate_max_yaw_sigma])
         self._cons_var = np.asarray(c.consensus_sigma, dtype=float) ** 2
@@ -477,22 +478,7 @@ class BusFilter:
         48 cm off (NEES 54)."""
         if tau <= 0:
             return P
-        qa, qj = self._q_a, self.cfg.extrapolation_jerk_density ** 2
-        v, th = float(x[ST_SPEED]), float(x[ST_YAW])
-        e = np.array([math.cos(th), math.sin(th)])  # along the track
-        n = np.array([-e[1], e[0]])  # across it
-        t2, t3, t4, t5 = tau ** 2, tau ** 3, tau ** 4, tau ** 5
-        P = P.copy()
-        P[ST_YAW_RATE, ST_YAW_RATE] += qa * tau
-        P[ST_YAW, ST_YAW] += qa * t3 / 3
-        P[ST_YAW, ST_YAW_RATE] += qa * t2 / 2
-        P[ST_YAW_RATE, ST_YAW] += qa * t2 / 2
-        P[:2, :2] += (v * v * qa * t5 / 20) * np.outer(n, n) + (qj * t5 / 20) * np.outer(e, e)
-        for k, c in ((ST_YAW, v * qa * t4 / 8 * n), (ST_YAW_RATE, v * qa * t3 / 6 * n), (ST_SPEED, qj * t4 / 8 * e)):
-            P[:2, k] += c
-            P[k, :2] += c
-        P[ST_SPEED, ST_SPEED] += qj * t3 / 3
-        return P
+        return kernels.unmeasured_motion(P, float(x[ST_SPEED]), float(x[ST_YAW]), self._q, tau)
 
     def _totals(self) -> tuple[dict[str, int], int]:
         """Fix outcome counts and fixes from flagged RSUs: the archived ones plus the buffer's."""
@@ -1043,7 +1029,8 @@ class BusFilter:
     def _fused(self, t_ns: int, x, P, g: _Gate, extrap_ns: int) -> FusedState:
         c = self.cfg
         since = math.inf if g.last_accept_ns is None else s_from_ns(t_ns - g.last_accept_ns)
-        pos_sigma = float(math.sqrt(max(np.linalg.eigvalsh(P[:2, :2])[-1], 0.0)))
+        a, b, c2 = float(P[0, 0]), float(P[1, 0]), float(P[1, 1])  # the larger eigenvalue of P[:2, :2] (lower half)
+        pos_sigma = math.sqrt(max(0.5 * (a + c2) + math.sqrt(0.25 * (a - c2) ** 2 + b * b), 0.0))
         yaw_sigma = float(math.sqrt(max(P[ST_YAW, ST_YAW], 0.0)))
         if g.mode == ACQUIRING:
             status = "acquiring"

@@ -1,6 +1,7 @@
 """Compiled kernels (numba) of the bus filter's IMU step: the prediction over one interval, the yaw
 rate's random step and the gyro/wheel update (toptag.fusion.filter: `_predict`, `_yaw_rate_noise`,
-`_imu_update`, `_kalman`), and the Kalman update a pose fix makes.
+`_imu_update`, `_kalman`), the Kalman update a pose fix makes, and the growth of an estimate's
+covariance beyond the newest IMU sample (`_unmeasured_motion`), which the bus agent asks for at 50 Hz.
 
 Why compiled. A fix arriving ~100 ms late re-runs the ~10 IMU steps after its capture time; at 40
 fixes/s that is 4-5 steps per IMU sample received. Each step is a few dozen numpy calls on a state of
@@ -20,8 +21,8 @@ import numpy as np
 from toptag.jit import compiled
 
 # Layout of `q`, the filter's constants, one array so that a call converts one argument, not ten.
-Q_POS, Q_YAW, Q_V, Q_B, Q_K, Q_D, Q_A, R_G, R_W, CORR_M = range(10)
-Q_LEN = 10
+Q_POS, Q_YAW, Q_V, Q_B, Q_K, Q_D, Q_A, R_G, R_W, CORR_M, Q_J = range(11)
+Q_LEN = 11
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
 
@@ -214,6 +215,42 @@ def imu_step(x, P, dt, a, q, n_clocks, has_u, gyro, wheel, has_wheel, freeze_lo)
     return imu_update(xn, Pn, dt, q, gyro, wheel, has_wheel, freeze_lo)
 
 
+@compiled
+def unmeasured_motion(P, v, th, q, tau):
+    """filter._unmeasured_motion: P (not changed) grown by tau seconds of white yaw acceleration (q[Q_A])
+    and white jerk (q[Q_J]) at speed v and heading th."""
+    Pn = P.copy()
+    if tau <= 0:
+        return Pn
+    qa, qj = q[Q_A], q[Q_J]
+    e0, e1 = math.cos(th), math.sin(th)  # along the track
+    n0, n1 = -e1, e0  # across it
+    t2, t3, t4, t5 = tau ** 2, tau ** 3, tau ** 4, tau ** 5
+    Pn[4, 4] += qa * tau
+    Pn[2, 2] += qa * t3 / 3
+    Pn[2, 4] += qa * t2 / 2
+    Pn[4, 2] += qa * t2 / 2
+    cn, ce = v * v * qa * t5 / 20, qj * t5 / 20
+    Pn[0, 0] += cn * (n0 * n0) + ce * (e0 * e0)
+    Pn[0, 1] += cn * (n0 * n1) + ce * (e0 * e1)
+    Pn[1, 0] += cn * (n1 * n0) + ce * (e1 * e0)
+    Pn[1, 1] += cn * (n1 * n1) + ce * (e1 * e1)
+    for k in range(3):
+        if k == 0:
+            col, f, u0, u1 = 2, v * qa * t4 / 8, n0, n1
+        elif k == 1:
+            col, f, u0, u1 = 4, v * qa * t3 / 6, n0, n1
+        else:
+            col, f, u0, u1 = 3, qj * t4 / 8, e0, e1
+        c0, c1 = f * u0, f * u1
+        Pn[0, col] += c0
+        Pn[1, col] += c1
+        Pn[col, 0] += c0
+        Pn[col, 1] += c1
+    Pn[3, 3] += qj * t3 / 3
+    return Pn
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel for the types the filter calls them with."""
     n = 11
@@ -230,6 +267,7 @@ def warm_up() -> None:
     H[0, 0] = H[1, 1] = H[2, 2] = 1.0
     PHt = P2 @ H.T
     kalman(x2, P2, PHt, H @ PHt + np.eye(3), np.zeros(3), 7, n)
+    unmeasured_motion(P2, 5.0, 0.3, q, 0.004)
 
 
-__all__ = ["Q_LEN", "imu_step", "imu_update", "kalman", "predict", "warm_up", "wrap"]
+__all__ = ["Q_LEN", "imu_step", "imu_update", "kalman", "predict", "unmeasured_motion", "warm_up", "wrap"]
