@@ -107,18 +107,20 @@ def test_the_bundled_faults_scenario_loads():
     sc = load_scenario(DEMO / "scenario-faults.json")
     w = World(sc)
     assert sc.faults["rsu-ne"].clock_offset_ms == 40 and sc.faults["rsu-sw"].drift.yaw_deg == 1.0
-    # its buses' settings: a busy machine's, a file that loads; the drift thresholds are the filter's
-    # defaults, and the 0.2 deg scenario takes the same file
+    # its buses' settings: a busy machine's, a file that loads, with a 10 cm / 0.3 deg box (the camera
+    # turns by 1 deg); the filter's defaults are 3 cm / 0.1 deg with the view-dependent error weighed
     from services.bus.agent import BusSettings
     from toptag.fusion.filter import FilterConfig
     from toptag.settings import load_settings
     f = load_settings(sc.bus_config, BusSettings).filter
-    assert (f.drift_min_pos_m, f.drift_min_yaw_deg) == (0.10, 0.3) == \
-        (FilterConfig().drift_min_pos_m, FilterConfig().drift_min_yaw_deg)
+    assert (f.drift_min_pos_m, f.drift_min_yaw_deg) == (0.10, 0.3)
     assert (f.drift_window_s, f.drift_min_fixes) == (30.0, 6.0)
-    # the 0.2 deg scenario's buses: the same, with the 3 cm / 0.1 deg box a 0.2 deg turn needs
-    f02 = load_settings(load_scenario(DEMO / "scenario-drift02.json").bus_config, BusSettings).filter
-    assert (f02.drift_min_pos_m, f02.drift_min_yaw_deg, f02.drift_window_s) == (0.03, 0.1, 30.0)
+    d = FilterConfig()
+    assert (d.drift_min_pos_m, d.drift_min_yaw_deg, d.drift_view_bias_share, d.drift_view_corr_m) == \
+        (0.03, 0.1, 0.76, 6.35)
+    assert f.drift_view_bias_share == d.drift_view_bias_share
+    # the 0.2 deg scenario's buses run the filter's defaults (no bus settings file), as a user's do
+    assert load_scenario(DEMO / "scenario-drift02.json").bus_config is None
     assert not w.faults[w.rsu_ids.index("rsu-ne")].clock_disciplined
     assert w.faults[w.rsu_ids.index("rsu-se")] == RsuFault()
 

@@ -352,6 +352,72 @@ def test_fixes_from_one_place_do_not_average_their_error_down():
     assert _view_case(share=0.0, step_m=0.0)
     assert not _view_case(share=1.0, step_m=0.0)
     assert _view_case(share=1.0, step_m=0.7, sigma=(0.01, 0.05), err=(0.035, 0.2))
+    # the same with the default share (0.76: the live fixes' fitted 58 % of their variance)
+    share = FilterConfig().drift_view_bias_share
+    assert not _view_case(share=share, step_m=0.0)
+    assert _view_case(share=share, step_m=0.7, sigma=(0.01, 0.05), err=(0.035, 0.2))
+
+
+def test_the_study_draws_view_dependent_errors_as_fitted():
+    """The fusion study's default fix errors (LIVE_VIEW_ERROR, fitted by `toptag eval livefix`): each fix's
+    error, in units of its stated sigma, has unit variance, and the share the fit says is common to the
+    same RSU's fixes taken a few centimetres apart (a standing bus), none of it 30 m apart."""
+    from sim.studies.fusion import LIVE_VIEW_ERROR
+
+    model = FixErrorModel(**LIVE_VIEW_ERROR)
+    near, far, zz = [], [], []
+    for seed in range(6):
+        traj = bus_trajectory("stop", "w", seed=0)
+        fixes = simulate_fixes(traj, model, 4, np.random.default_rng(seed))
+        by = {}
+        for f in fixes:
+            st = traj.state_at_ns(f.t_ns)
+            e = np.array([f.x - st.x, f.y - st.y, math.remainder(f.yaw - st.yaw, 2 * math.pi)])
+            by.setdefault(f.source, []).append((np.hypot(st.x, st.y), e / np.sqrt(np.diag(f.cov)), st))
+        for rows in by.values():
+            zz.extend(z for _, z, _ in rows)
+            for (_, a, sa), (_, b, sb) in zip(rows, rows[1:]):
+                if math.hypot(sa.x - sb.x, sa.y - sb.y) < 0.05:
+                    near.append((a, b))
+            for i in range(0, len(rows), 2):
+                for j in range(i + 1, len(rows)):
+                    if math.hypot(rows[i][2].x - rows[j][2].x, rows[i][2].y - rows[j][2].y) > 30:
+                        far.append((rows[i][1], rows[j][1]))
+    zz = np.array(zz)
+    assert np.all(np.abs(np.sqrt((zz ** 2).mean(0)) - 1.0) < 0.15)
+    rho = lambda pairs: np.mean([float(a @ b) for a, b in pairs]) / 3
+    assert len(near) > 100 and abs(rho(near) - model.view_share) < 0.15
+    assert len(far) > 100 and abs(rho(far)) < 0.15
+
+
+def test_the_live_fits_correlation_and_share_are_recovered():
+    """`toptag eval livefix`'s fit of rho(d) = share exp(-d / corr_m) over binned correlations."""
+    from sim.studies.livefix import fit_view_correlation
+
+    d = np.array([0.02, 0.1, 0.35, 0.75, 1.5, 3.0, 6.0, 12.0])
+    share, L, res = fit_view_correlation(d, 0.6 * np.exp(-d / 5.0), np.full(len(d), 100.0))
+    assert abs(share - 0.6) < 0.02 and 4.5 < L < 5.6 and res < 0.01
+
+
+def test_the_defaults_flag_a_02_deg_turn_on_live_like_fixes_and_nothing_without(turn):
+    """The issue's 0.2 deg step with the bus filter's default settings, on fixes drawn as the live pipeline's
+    (the fusion study's default error model): flagged within 10 s of the bus in the camera's view, and the
+    same fixes without the turn flag nothing."""
+    from sim.studies.fusion import LIVE_VIEW_ERROR
+
+    traj, imu = turn
+    model = FixErrorModel(**LIVE_VIEW_ERROR)
+    faults = faults_from_options(drift_deg="rsu-se=0.2@0")
+    for seed in (1, 2):
+        turned = drive(BusFilter(FilterConfig()), imu,
+                       arrivals(simulate_fixes(traj, model, 4, np.random.default_rng(seed), faults=faults), faults))
+        a = turned.rsu_assessments()
+        first = min(f.t_ns for f in simulate_fixes(traj, model, 4, np.random.default_rng(seed)) if f.source == "rsu-se")
+        assert a["rsu-se"].flagged and a["rsu-se"].flagged_since_ns - first < 10 * 10**9, (seed, a["rsu-se"])
+        assert [r for r, v in a.items() if v.flagged] == ["rsu-se"]
+        healthy = drive(BusFilter(FilterConfig()), imu,
+                        arrivals(simulate_fixes(traj, model, 4, np.random.default_rng(seed)), {}))
+        assert not any(v.flagged for v in healthy.rsu_assessments().values())
 
 
 def test_refuse_policy_refuses_a_flagged_rsu(turn):
@@ -665,6 +731,8 @@ def test_fusion_study_writes_the_evidence_of_time_and_trust(tmp_path):
     assert case["false_flags"] == 0 == saved["latency_ms"]["100"]["false_flags"]
     assert saved["time_and_trust"]["100"]["offsets_within_3ms_every_run"]
     assert res["setup"]["faults"].startswith("rsu-ne")
+    # the default fix errors are the live pipeline's fitted ones, and the run says so
+    assert "view-dependent" in saved["setup"]["fix_error_model"] and saved["setup"]["fix_model"]["view_share"] > 0
 
 
 @pytest.mark.parametrize("argv, says", [

@@ -15,10 +15,20 @@ Four estimators see the same data:
   naive           the same EKF, each fix applied on arrival as if it were current (no gate)
   dead reckoning  the same EKF from the true initial pose, IMU / odometry only
 
-Fix error model ("study"): per RSU, position noise sigma = 3 cm at the RSU growing linearly to 5 cm
-at `range_m` (horizontal distance), 1.3x larger along the line of sight; yaw sigma 0.1° -> 0.2°;
-independent between fixes; the reported covariance is exactly the covariance of the noise. Healthy
-RSUs stamp with a disciplined clock (a 1 ms bound, chrony-grade).
+Fix error model (results.json `setup.fix_error_model` says which one a run used):
+  view (the default, `LIVE_VIEW_ERROR`): as the live RSU pipeline's fixes on the demo's rendered frames,
+       fitted by `toptag eval livefix` (docs/time-and-trust.md): sigmas by the bus's horizontal range from
+       the RSU (0.4 cm / 0.04 deg near, 2 cm / 0.09 deg at 18 m, 5 cm / 0.2 deg at 22 m), 1.3x larger along
+       the line of sight; a share `view_share` of each fix's error variance is one process per RSU that
+       correlates as exp(-distance the bus drove / `view_corr_m`) (a standing bus's fixes share it; a
+       moving bus's decorrelate within metres), the rest independent between fixes. The bus filter runs
+       with its own drift settings (STUDY_VIEW_SETTINGS: only the change test on, for --passes).
+  white (`--fix-errors white`, the study's model until 2026-11-23's sixth session): position sigma 3 cm
+       at the RSU growing linearly to 5 cm at `range_m`, 1.3x larger along the line of sight; yaw sigma
+       0.1 -> 0.2 deg; independent between fixes. The filter runs with STUDY_DRIFT_THRESHOLDS.
+Either way the reported covariance is exactly the covariance of a fix's error. Fixes are made while the bus
+is within `range_m` (22 m) of the RSU. Healthy RSUs stamp with a disciplined clock (a 1 ms bound,
+chrony-grade).
 Calibration error (`--calib-deg DEG --calib-cm CM`, default 0: none): each RSU's camera really stands
 off its surveyed pose by a draw of sim.image_model.perturb_camera (DEG per camera axis, CM per world
 axis; one draw per RSU and run), so its every fix carries the same bias (sim.faults.seen_pose), and
@@ -78,16 +88,31 @@ TRUST_HZ = 5.0  # how often the fused filter's per-RSU assessments are sampled
 OFFSET_TOLERANCE_MS = 3.0
 FLAG_WITHIN_S = 10.0
 
-# The drift thresholds for this study's fix model, whose fixes carry no per-RSU bias but the calibration
-# error they state (FixErrorModel.calib_*) and whose noise is white: no bias floor and no view-dependent
-# error, where the filter's defaults allow for the live RSU pipeline's (its own per-RSU bias, toptag eval
-# livefix; its fixes from one part of the view erring alike, docs/time-and-trust.md, off by default), and a
-# minimum disagreement of 3 cm / 0.1 deg (the filter's default is 10 cm / 0.3 deg).
-# Its covariances are honest, so the change test (an RSU against its own long run over the passes, off in
-# the filter's defaults) is on, with a day's memory.
+# The drift thresholds for this study's white fix model (`--fix-errors white`), whose fixes carry no
+# per-RSU bias but the calibration error they state (FixErrorModel.calib_*) and whose noise is independent
+# between fixes: no bias floor and no view-dependent error, where the filter's defaults allow for the live
+# RSU pipeline's (its own per-RSU bias, toptag eval livefix; its fixes from one part of the view erring
+# alike), a minimum disagreement of 3 cm / 0.1 deg, and other RSUs compared with from 10 effective fixes (the
+# filter's default until 2026-11-23's sixth session: the white study's figures are reproduced as they were).
+# Its covariances are honest, so the change test (an RSU against its own long run over the passes, off in the
+# filter's defaults) is on, with a day's memory.
 STUDY_DRIFT_THRESHOLDS = {"drift_min_pos_m": 0.03, "drift_min_yaw_deg": 0.1,
                           "drift_bias_sigma_m": 0.0, "drift_bias_sigma_deg": 0.0,
-                          "drift_view_bias_share": 0.0, "drift_baseline_window_s": 86400.0}
+                          "drift_view_bias_share": 0.0, "drift_min_other_fixes": 10.0,
+                          "drift_baseline_window_s": 86400.0}
+# With the view-dependent fix errors (the default model) the study runs the bus filter's own drift
+# settings, as a bus does; only the change test is on (it needs passes, --passes).
+STUDY_VIEW_SETTINGS = {"drift_baseline_window_s": 86400.0}
+# The live RSU pipeline's fix errors on the demo's rendered frames, fitted by `toptag eval livefix --bus
+# bus-17,bus-42 --seconds 120` (docs/time-and-trust.md, "The study's fixes, fitted to the live pipeline"):
+# the share of a fix's error variance that is view-dependent and the distance driven over which it
+# decorrelates (view_correlation.fit.all: 0.58, 6.35 m), and the size of the errors by range from the
+# camera (size_by_range, stated sigmas, z-RMS ~1: position per axis / 1.15 for the line-of-sight factor;
+# yaw): 0.4 cm / 0.04 deg up to ~12 m, 0.7 cm / 0.04 deg at 12-16 m, 2.4 cm / 0.09 deg at 16-20 m,
+# 5.5 cm / 0.21 deg at 20-24 m.
+LIVE_VIEW_ERROR = {"view_share": 0.58, "view_corr_m": 6.35,
+                   "profile": ((0.0, 0.0036, 0.04), (10.0, 0.0036, 0.035), (14.0, 0.0065, 0.04),
+                               (18.0, 0.021, 0.09), (22.0, 0.048, 0.21))}
 
 
 @dataclass(frozen=True)
@@ -102,6 +127,24 @@ class FixErrorModel:
     along_sight: float = 1.3  # sigma multiplier along the RSU's line of sight
     calib_rot_sigma_deg: float = 0.0  # each camera's calibration error per camera axis (one draw per run)
     calib_trans_sigma: float = 0.0  # and of its centre per world axis, m
+    # the share of each fix's error variance that is view-dependent: one process per RSU, correlating as
+    # exp(-distance driven / view_corr_m) between its fixes (0: every error independent, "white")
+    view_share: float = 0.0
+    view_corr_m: float = 4.0
+    # sigmas by range instead of the linear near/far ones: ((range m, position sigma m, yaw sigma deg), ...),
+    # interpolated linearly (None: pos_sigma_near/far, yaw_sigma_near/far_deg)
+    profile: tuple[tuple[float, float, float], ...] | None = None
+
+    def describe(self) -> str:
+        """One line: which error model the fixes were drawn with."""
+        noise = (f"{100 * self.pos_sigma_near:g}-{100 * self.pos_sigma_far:g} cm, "
+                 f"{self.yaw_sigma_near_deg:g}-{self.yaw_sigma_far_deg:g} deg") if self.profile is None else \
+            "sigmas by range " + ", ".join(f"{r:g} m {100 * p:.2g} cm / {y:g} deg" for r, p, y in self.profile)
+        kind = "white" if self.view_share <= 0 else \
+            f"{100 * self.view_share:.0f} % of each fix's variance view-dependent over {self.view_corr_m:g} m driven"
+        calib = f"; calibration error {self.calib_rot_sigma_deg:g} deg / {100 * self.calib_trans_sigma:g} cm" \
+            if self.calibrated else ""
+        return f"study fixes {noise}, {kind}{calib}"
 
     @property
     def calibrated(self) -> bool:
@@ -115,9 +158,13 @@ class FixErrorModel:
     def covariance(self, bus_xy: np.ndarray, rsu_xy: np.ndarray) -> np.ndarray:
         d_vec = bus_xy - rsu_xy
         d = float(np.hypot(*d_vec))
-        r = min(d / self.range_m, 1.0)
-        s = self.pos_sigma_near + (self.pos_sigma_far - self.pos_sigma_near) * r
-        sy = math.radians(self.yaw_sigma_near_deg + (self.yaw_sigma_far_deg - self.yaw_sigma_near_deg) * r)
+        if self.profile is not None:
+            rr, ps, ys = zip(*self.profile)
+            s, sy = float(np.interp(d, rr, ps)), math.radians(float(np.interp(d, rr, ys)))
+        else:
+            r = min(d / self.range_m, 1.0)
+            s = self.pos_sigma_near + (self.pos_sigma_far - self.pos_sigma_near) * r
+            sy = math.radians(self.yaw_sigma_near_deg + (self.yaw_sigma_far_deg - self.yaw_sigma_near_deg) * r)
         e = d_vec / d if d > 1e-9 else np.array([1.0, 0.0])
         C2 = s * s * (np.eye(2) + (self.along_sight ** 2 - 1) * np.outer(e, e))
         C = np.zeros((3, 3))
@@ -158,6 +205,8 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
         phase = rng.uniform(0.0, period)
         t = np.arange(phase, traj.duration, period)
         st = traj.state_at(t)
+        driven = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(st.x), np.diff(st.y)))])
+        view = _ViewError(model.view_share, model.view_corr_m) if model.view_share > 0 else None
         seq = 0
         for i in range(len(t)):
             bus = np.array([st.x[i], st.y[i]])
@@ -171,6 +220,8 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
             else:
                 C = model.covariance(bus, m.position[:2])
                 n = np.linalg.cholesky(C) @ rng.standard_normal(3)
+                if view is not None:  # the white part's share, plus the view-dependent part
+                    n = math.sqrt(1.0 - view.share) * n + view.draw(C, float(driven[i]), rng)
                 seen = (st.x[i], st.y[i], st.yaw[i])
                 camera = actual
                 if fault.drift is not None:
@@ -189,6 +240,28 @@ def simulate_fixes(traj: Trajectory, model: FixErrorModel, n_rsu: int, rng: np.r
             seq += 1
     fixes.sort(key=lambda f: f.t_ns)
     return fixes
+
+
+class _ViewError:
+    """One RSU's view-dependent fix error: u (3, unit variance per axis) an Ornstein-Uhlenbeck process in
+    the distance the bus drove, so u of two fixes correlates as exp(-distance / corr_m); a fix of covariance
+    C errs by sqrt(share) C^1/2 u (the symmetric root, as the drift detector takes it)."""
+
+    def __init__(self, share: float, corr_m: float):
+        self.share, self.corr_m = min(max(share, 0.0), 1.0), corr_m
+        self.u: np.ndarray | None = None
+        self.s = 0.0
+
+    def draw(self, C: np.ndarray, driven_m: float, rng: np.random.Generator) -> np.ndarray:
+        e = rng.standard_normal(3)
+        if self.u is None:
+            self.u = e
+        else:
+            rho = math.exp(-abs(driven_m - self.s) / self.corr_m)
+            self.u = rho * self.u + math.sqrt(max(0.0, 1.0 - rho * rho)) * e
+        self.s = driven_m
+        w, V = np.linalg.eigh(C)
+        return math.sqrt(self.share) * ((V * np.sqrt(np.maximum(w, 0.0))) @ V.T) @ self.u
 
 
 def calibration_share(surveyed: Camera, pose, cov6: np.ndarray) -> np.ndarray:
@@ -381,6 +454,13 @@ def _rms(v):
     return float(np.sqrt(np.mean(v * v))) if len(v) else float("nan")
 
 
+def study_config(fix_model: FixErrorModel, overrides: dict | None = None) -> FilterConfig:
+    """The bus filter the study runs: on view-dependent fixes the filter's own drift settings (the change
+    test on), on white fixes STUDY_DRIFT_THRESHOLDS; `overrides` on top."""
+    base = STUDY_VIEW_SETTINGS if fix_model.view_share > 0 else STUDY_DRIFT_THRESHOLDS
+    return FilterConfig(**(base | (overrides or {})))
+
+
 def _inputs(routes, speed, runs, seed, imu_model, fix_model, n_rsu, fix_source, faults, passes: int = 1,
             gap_s: float = 60.0) -> list[RunInput]:
     """Each run's route (cycling through `routes`), IMU and fixes (with and without faults, same noise);
@@ -441,8 +521,8 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     imu_model = imu_model or ImuModel()
-    fix_model = fix_model or FixErrorModel()
-    cfg = config or FilterConfig(**STUDY_DRIFT_THRESHOLDS)
+    fix_model = fix_model or FixErrorModel(**LIVE_VIEW_ERROR)
+    cfg = config or study_config(fix_model)
     faults = dict(faults or {})
     routes = [r.strip() for r in route.split(",") if r.strip()]
     rsus = [m.id for m in rsu_mounts()[:n_rsu]]
@@ -510,6 +590,7 @@ def run(out_dir, latencies_ms=DEFAULT_LATENCIES_MS, jitter_ms: float = 30.0, see
         "jitter_ms": jitter_ms, "delay_model": "max(0, latency + N(0, jitter))", "n_rsu": n_rsu, "rsus": rsus,
         "settle_s": settle_s, "output_hz": 50, "passes_per_run": passes, "pass_gap_s": pass_gap_s,
         "fix_model": "live (fix_source)" if fix_source else asdict(fix_model), "imu_model": asdict(imu_model),
+        "fix_error_model": "live RSU pipeline (fix_source)" if fix_source else fix_model.describe(),
         "healthy_clock_bound_ns": HEALTHY_CLOCK_BOUND_NS, "faults": describe(faults),
         "filter": cfg.model_dump(),
         "plain": "the same filter with time offsets taken as zero and no drift detection",
@@ -782,6 +863,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="passes per run: the same bus and cameras, each pass's filter starting from what the last "
                         "learnt (the drift detector's change test needs earlier passes); default 1")
     p.add_argument("--pass-gap-s", type=float, default=60.0, metavar="S", help="time between passes (default 60)")
+    p.add_argument("--fix-errors", choices=("view", "white"), default="view",
+                   help="the study's fix errors: view-dependent as the live pipeline's (view, default: "
+                        f"{LIVE_VIEW_ERROR['view_share']:g} of each fix's variance shared over "
+                        f"{LIVE_VIEW_ERROR['view_corr_m']:g} m driven, sigmas by range as the live pipeline's, the "
+                        "bus filter's own drift settings) or independent between fixes (white: 3-5 cm, 0.1-0.2 deg, "
+                        "the study's model before, with the study's former drift thresholds)")
+    p.add_argument("--view-share", type=float, default=None, metavar="SHARE",
+                   help="with --fix-errors view: the view-dependent share of each fix's variance (default "
+                        f"{LIVE_VIEW_ERROR['view_share']:g})")
+    p.add_argument("--view-corr-m", type=float, default=None, metavar="M",
+                   help=f"with --fix-errors view: its correlation length, m driven (default {LIVE_VIEW_ERROR['view_corr_m']:g})")
     p.add_argument("--fixes", default="study", choices=("study", "live"),
                    help="fix error model: the study's (default) or the live pipeline")
     p.add_argument("--plots", choices=("all", "trust", "none"), default="all",
@@ -831,9 +923,12 @@ def main(argv: list[str] | None = None) -> int:
         opts = {"flagged_policy": a.flagged, "calib_bias": a.calib_bias, "calib_bias_corr_m": a.calib_bias_corr_m}
         if a.calib_as_noise:
             opts["drift_calibration_is_bias"] = False
-        cfg = FilterConfig(**(STUDY_DRIFT_THRESHOLDS | _filter_table(a.bus_config)
-                              | {k: v for k, v in opts.items() if v is not None}))
-        fix_model = FixErrorModel(calib_rot_sigma_deg=a.calib_deg, calib_trans_sigma=a.calib_cm / 100)
+        view = {} if a.fix_errors == "white" else LIVE_VIEW_ERROR | {
+            k: v for k, v in (("view_share", a.view_share), ("view_corr_m", a.view_corr_m)) if v is not None}
+        if view and not (0 < view["view_share"] <= 1 and view["view_corr_m"] > 0):
+            raise InputError("--view-share must be in (0, 1] and --view-corr-m > 0")
+        fix_model = FixErrorModel(calib_rot_sigma_deg=a.calib_deg, calib_trans_sigma=a.calib_cm / 100, **view)
+        cfg = study_config(fix_model, _filter_table(a.bus_config) | {k: v for k, v in opts.items() if v is not None})
         if a.passes < 1 or a.pass_gap_s < 0:
             raise InputError("--passes must be >= 1 and --pass-gap-s >= 0")
         plots = False if a.no_plots or a.plots == "none" else ("trust" if a.plots == "trust" and faults else True)
@@ -860,7 +955,8 @@ def main(argv: list[str] | None = None) -> int:
               f"({r['naive_over_fused']:.0f}x fused)")
     fault_free_flags = sum(r["false_flags"] for r in res["latency_ms"].values())
     hours = sum(r["hours_of_data"] for r in res["latency_ms"].values())
-    print(f"\nfault-free: {fault_free_flags} drift flags in {hours * 60:.1f} min of data")
+    print(f"\nfix errors: {res['setup']['fix_error_model']}")
+    print(f"fault-free: {fault_free_flags} drift flags in {hours * 60:.1f} min of data")
     if faults:
         _print_faulted(res)
     print(f"wrote {Path(a.out) / 'results.json'} and {', '.join(res.get('figures', []))}; "

@@ -18,10 +18,11 @@ common to every fix it makes (`Fix.calib_cov`, what the camera file's calibratio
 the fix; toptag.solvers.calibrated), so it does not average down with more fixes, as noise does. It is
 B, the covariance of the RSU's constant bias, together with `bias_floor` (`drift_bias_sigma_m`,
 `drift_bias_sigma_deg`: what a healthy RSU's fixes may be off by beyond their stated calibration, e.g.
-the live pipeline's own per-RSU bias, `toptag eval livefix`). Optionally (`view_bias_share` > 0) B also
-holds what the fixes' view-dependent errors leave in m: fixes of a bus seen from one place (a standing
-bus, one far tag) err alike, correlating as exp(-distance driven / `view_corr_m`), so they count as one
-view, not one sample per frame (DriftRule.bias_cov).
+the live pipeline's own per-RSU bias, `toptag eval livefix`). With `view_bias_share` s > 0 (the default,
+0.76) B also holds what the fixes' view-dependent errors leave in m: fixes of a bus seen from one place (a
+standing bus, one far tag) err alike, correlating as exp(-distance driven / `view_corr_m`), so they count
+as one view, not one sample per frame (DriftRule.bias_cov); the rest of each fix's noise, (1 - s²) R, is
+what S holds as white (`toptag eval livefix` fits s² = 0.58 over 6.35 m on the live pipeline's fixes).
 
 A single wild fix cannot do much: nu is clipped to a Mahalanobis radius (`clip_sigma`, 10) before it
 enters b, so it weighs like a 10-sigma fix at most. The radius is taken on S plus the drift thresholds
@@ -91,6 +92,9 @@ import numpy as np
 from toptag.units import s_from_ns
 
 CALIBRATE_CHECK = "toptag calibrate check --camera CAM.json --points POINTS.json IMAGE"
+# With a view-dependent error of share s (of each fix's sigma), the rest of its variance, (1 - s²) R, is white;
+# at least this share of R is kept white, so that S stays well conditioned whatever s is.
+MAX_VIEW_SHARE_OF_VARIANCE = 0.9
 
 
 class RsuRecord(NamedTuple):
@@ -234,11 +238,13 @@ class DriftRule:
         the time offset's; None: none); R the fix's own noise covariance and xy where the bus was (for
         its view-dependent error: view_bias_share)."""
         B = np.zeros((3, 3)) if B is None else B
-        Si = np.linalg.inv(S)
         d2 = _chi2(nu, S + self._floor)
         if d2 > self.clip_d2:
             nu = nu * math.sqrt(self.clip_d2 / d2)
         view = self.view_bias_share > 0 and R is not None and xy is not None
+        if view:  # the fix's noise is its view-dependent part (below) plus the rest, white
+            S = S - min(self.view_bias_share ** 2, MAX_VIEW_SHARE_OF_VARIANCE) * R
+        Si = np.linalg.inv(S)
         X = Si @ _sqrtm(R) if view else None
         if rec.A is None:
             A, A2, b, sw, sw2, Bs = Si, Si, Si @ nu, 1.0, 1.0, B
