@@ -63,7 +63,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from toptag.fix import Fix
 from toptag.fusion import kernels
 from toptag.fusion.biases import BIAS_DIM, bias_root
-from toptag.fusion.offsets import motion_rate, pose_before
+from toptag.fusion.offsets import motion_rate
 from toptag.fusion.outcomes import FixOutcome, FixRecord, applied_count, count_outcomes
 from toptag.fusion.state import (
     STATE_DIM,
@@ -85,6 +85,7 @@ ACQUIRING, TRACKING = 1, 2
 _MODE_NAMES = {ACQUIRING: "acquiring", TRACKING: "tracking"}
 _EYES: dict[int, np.ndarray] = {}
 _NO_RSUS = MappingProxyType({})
+_NO_BIAS_ROOT = np.zeros((BIAS_DIM, BIAS_DIM))  # kernels.fix_model's L without a bias block
 
 
 def _eye(n: int) -> np.ndarray:
@@ -828,36 +829,22 @@ class BusFilter:
         flagged: whether its RSU was flagged). bias_root: the fix's FixRecord.bias_root."""
         rsu = fix.source
         n = len(x)
-        H = np.zeros((3, n))
-        i = None
-        if self._offsets:
-            i = STATE_DIM + g.clocks.index(rsu)
-            h, H[:, :5], Hd = pose_before(x, x[i], accel)
-            H[:, i] = Hd
+        i = STATE_DIM + g.clocks.index(rsu) if self._offsets else None
+        L = bias_root if rsu in g.biases else None
+        # The prediction (toptag.fusion.kernels.fix_model): the pose its offset before (offsets.pose_before)
+        # plus L eps with a bias block. The drift detector sees the fix against the pose (nu_pose: its bias
+        # not taken out: it weighs the calibration share as a bias of its own, toptag.fusion.trust, and a
+        # turn must not hide in it).
+        nu_pose, nu, H, PHt, HPHt, HPHt_pose, Hd = kernels.fix_model(
+            x, P, fix.pose, -1 if i is None else i, float(accel),
+            -1 if L is None else self._bias_index(g, rsu), _NO_BIAS_ROOT if L is None else L)
+        if i is not None:
             off_cov = np.outer(Hd, Hd) * P[i, i]  # the offset's share of the prediction's covariance
             off_var = np.diag(off_cov).copy()
         else:
-            h = x[:3]
-            H[0, ST_X] = H[1, ST_Y] = H[2, ST_YAW] = 1.0
             off_cov = None
             off_var = np.zeros(3)
-        nu = fix.pose - h
-        nu[2] = wrap_angle(nu[2])
-        # The drift detector sees the fix against the pose (its bias not taken out: it weighs the
-        # calibration share as a bias of its own, toptag.fusion.trust, and a turn must not hide in it).
-        nu_pose, R = nu, fix.cov
-        L = bias_root if rsu in g.biases else None
-        if L is not None:
-            j = self._bias_index(g, rsu)
-            HPHt_pose = H @ (P @ H.T)
-            H[:, j:j + BIAS_DIM] = L
-            nu = nu - L @ x[j:j + BIAS_DIM]
-            nu[2] = wrap_angle(nu[2])
-            R = fix.cov - fix.calib_cov  # the fix's noise: its calibration share is L eps
-        PHt = P @ H.T
-        HPHt = H @ PHt
-        if L is None:
-            HPHt_pose = HPHt
+        R = fix.cov if L is None else fix.cov - fix.calib_cov  # with L eps a state: the fix's noise
         rec = g.rsus.get(rsu)
         flagged = rec is not None and rec.flagged
         # A flagged RSU moves no time offset (consider states): a turned camera's bias along the track
@@ -909,7 +896,7 @@ class BusFilter:
             x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
             return x, P, applied, FixOutcome.ACCEPTED, float("nan")
         if g.mode == ACQUIRING:
-            d2 = float(nu @ np.linalg.solve(HPHt + R_gate, nu))
+            d2 = kernels.mahalanobis(HPHt + R_gate, nu)
             if d2 > self._gate_thr:
                 return x, P, g._replace(consecutive=g.consecutive + 1), FixOutcome.REJECTED_GATE, d2
             cand = _Cand(fix.t_ns, rsu, nu, fix.cov, np.diag(P[:3, :3]).copy())
@@ -919,10 +906,7 @@ class BusFilter:
                 return x, P, applied, FixOutcome.ACCEPTED, d2
             return x, P, g._replace(cands=cands), FixOutcome.UNCONFIRMED, d2
         # tracking: the filter's own pose covariance is capped inside S (the offset's share is not)
-        sd = np.sqrt(np.maximum(np.diag(HPHt), 1e-300))
-        f = np.minimum(1.0, np.sqrt(self._cap ** 2 + off_var) / sd)
-        S_gate = HPHt * np.outer(f, f) + R_gate
-        d2 = float(nu @ np.linalg.solve(S_gate, nu))
+        d2 = kernels.capped_d2(HPHt, R_gate, self._cap, off_var, nu)
         if d2 <= self._gate_thr:
             x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
             return x, P, applied, FixOutcome.ACCEPTED, d2

@@ -1,7 +1,8 @@
 """Compiled kernels (numba) of the bus filter's IMU step: the prediction over one interval, the yaw
 rate's random step and the gyro/wheel update (toptag.fusion.filter: `_predict`, `_yaw_rate_noise`,
-`_imu_update`, `_kalman`), the Kalman update a pose fix makes, and the growth of an estimate's
-covariance beyond the newest IMU sample (`_unmeasured_motion`), which the bus agent asks for at 50 Hz.
+`_imu_update`, `_kalman`), a pose fix's prediction, gate and Kalman update (`_apply_fix`, `_gate`;
+toptag.fusion.offsets.pose_before), and the growth of an estimate's covariance beyond the newest IMU
+sample (`_unmeasured_motion`), which the bus agent asks for at 50 Hz.
 
 Why compiled. A fix arriving ~100 ms late re-runs the ~10 IMU steps after its capture time; at 40
 fixes/s that is 4-5 steps per IMU sample received. Each step is a few dozen numpy calls on a state of
@@ -216,6 +217,135 @@ def imu_step(x, P, dt, a, q, n_clocks, has_u, gyro, wheel, has_wheel, freeze_lo)
 
 
 @compiled
+def pose_before(x, delta, accel):
+    """toptag.fusion.offsets.pose_before (its doc has the model): (h, H_state 3x5, H_delta)."""
+    v, th, w = x[3], x[2], x[4]
+    d = v * delta - 0.5 * accel * delta * delta
+    dd = v - accel * delta  # d(d)/d(delta)
+    phi = th - 0.5 * w * delta
+    c, s = math.cos(phi), math.sin(phi)
+    h = np.empty(3)
+    h[0], h[1], h[2] = x[0] - d * c, x[1] - d * s, wrap(th - w * delta)
+    Hs = np.zeros((3, 5))
+    Hs[0, 0] = Hs[1, 1] = Hs[2, 2] = 1.0
+    Hs[0, 2], Hs[1, 2] = d * s, -d * c
+    Hs[0, 3], Hs[1, 3] = -delta * c, -delta * s
+    Hs[0, 4], Hs[1, 4] = -0.5 * delta * d * s, 0.5 * delta * d * c
+    Hs[2, 4] = -delta
+    Hd = np.empty(3)
+    Hd[0], Hd[1], Hd[2] = -dd * c - 0.5 * w * d * s, -dd * s + 0.5 * w * d * c, -w
+    return h, Hs, Hd
+
+
+@compiled
+def _hpht(H, P):
+    """(P H', H P H')."""
+    m, n = H.shape
+    PHt = np.zeros((n, m))
+    for r in range(n):
+        for k in range(m):
+            t = 0.0
+            for c in range(n):
+                t += P[r, c] * H[k, c]
+            PHt[r, k] = t
+    S = np.zeros((m, m))
+    for k in range(m):
+        for l in range(m):
+            t = 0.0
+            for r in range(n):
+                t += H[k, r] * PHt[r, l]
+            S[k, l] = t
+    return PHt, S
+
+
+@compiled
+def fix_model(x, P, pose, i, accel, j, L):
+    """A pose fix's prediction from the state (filter._apply_fix): the pose (x, y, yaw) its RSU's time
+    offset x[i] before (toptag.fusion.offsets; i < 0: the state's own pose) and, with the RSU's bias
+    block at j (j < 0: none), that pose plus L eps. Returns (nu_pose: the innovation against the pose,
+    nu: against the prediction with the bias, H, P H', H P H', H_pose P H_pose' (the same as H P H'
+    without a bias block), H_delta (zeros without an offset))."""
+    n = x.shape[0]
+    H = np.zeros((3, n))
+    if i >= 0:
+        h, Hs, Hd = pose_before(x, x[i], accel)
+        for k in range(3):
+            for c in range(5):
+                H[k, c] = Hs[k, c]
+            H[k, i] = Hd[k]
+    else:
+        h = x[:3].copy()
+        Hd = np.zeros(3)
+        H[0, 0] = H[1, 1] = H[2, 2] = 1.0
+    nu_pose = pose - h
+    nu_pose[2] = wrap(nu_pose[2])
+    if j < 0:
+        PHt, HPHt = _hpht(H, P)
+        return nu_pose, nu_pose, H, PHt, HPHt, HPHt, Hd
+    HPHt_pose = _hpht(H, P)[1]
+    for k in range(3):
+        for c in range(3):
+            H[k, j + c] = L[k, c]
+    nu = nu_pose.copy()
+    for k in range(3):
+        t = 0.0
+        for c in range(3):
+            t += L[k, c] * x[j + c]
+        nu[k] -= t
+    nu[2] = wrap(nu[2])
+    PHt, HPHt = _hpht(H, P)
+    return nu_pose, nu, H, PHt, HPHt, HPHt_pose, Hd
+
+
+@compiled
+def mahalanobis(S, nu):
+    """nu' S^-1 nu (Gaussian elimination with partial pivoting, as numpy's solve)."""
+    m = nu.shape[0]
+    A = S.copy()
+    b = nu.copy()
+    for col in range(m):
+        piv = col
+        for r in range(col + 1, m):
+            if abs(A[r, col]) > abs(A[piv, col]):
+                piv = r
+        if piv != col:
+            for c in range(m):
+                A[col, c], A[piv, c] = A[piv, c], A[col, c]
+            b[col], b[piv] = b[piv], b[col]
+        for r in range(col + 1, m):
+            f = A[r, col] / A[col, col]
+            for c in range(col + 1, m):
+                A[r, c] -= f * A[col, c]
+            b[r] -= f * b[col]
+    y = np.empty(m)
+    for col in range(m - 1, -1, -1):
+        t = b[col]
+        for c in range(col + 1, m):
+            t -= A[col, c] * y[c]
+        y[col] = t / A[col, col]
+    d2 = 0.0
+    for k in range(m):
+        d2 += nu[k] * y[k]
+    return d2
+
+
+@compiled
+def capped_d2(HPHt, R, cap, off_var, nu):
+    """The tracking gate's d² (filter._gate): the filter's own pose covariance in H P H' capped at cap
+    per axis (the offset's share, off_var, is not), plus R."""
+    m = nu.shape[0]
+    f = np.empty(m)
+    for k in range(m):
+        sd = math.sqrt(max(HPHt[k, k], 1e-300))
+        f[k] = min(1.0, math.sqrt(cap[k] ** 2 + off_var[k]) / sd)
+    S = np.empty((m, m))
+    for k in range(m):
+        for l in range(m):
+            S[k, l] = HPHt[k, l] * (f[k] * f[l]) + R[k, l]
+    return mahalanobis(S, nu)
+
+
+@compiled
 def unmeasured_motion(P, v, th, q, tau):
     """filter._unmeasured_motion: P (not changed) grown by tau seconds of white yaw acceleration (q[Q_A])
     and white jerk (q[Q_J]) at speed v and heading th."""
@@ -268,6 +398,14 @@ def warm_up() -> None:
     PHt = P2 @ H.T
     kalman(x2, P2, PHt, H @ PHt + np.eye(3), np.zeros(3), 7, n)
     unmeasured_motion(P2, 5.0, 0.3, q, 0.004)
+    pose = np.array([0.1, 0.2, 0.3])
+    L = np.eye(3) * 0.01
+    for i, j in ((8, n - 3), (8, -1), (-1, -1)):
+        nu_pose, nu, H, PHt, HPHt, HPHt_pose, Hd = fix_model(x2, P2, pose, i, 0.1, j, L)
+        capped_d2(HPHt, np.eye(3), np.ones(3), np.zeros(3), nu)
+        mahalanobis(HPHt + np.eye(3), nu)
+    pose_before(x2, 0.01, 0.1)
 
 
-__all__ = ["Q_LEN", "imu_step", "imu_update", "kalman", "predict", "unmeasured_motion", "warm_up", "wrap"]
+__all__ = ["Q_LEN", "capped_d2", "fix_model", "imu_step", "imu_update", "kalman", "mahalanobis", "pose_before",
+           "predict", "unmeasured_motion", "warm_up", "wrap"]

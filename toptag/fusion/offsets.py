@@ -23,28 +23,15 @@ import math
 
 import numpy as np
 
-from toptag.fusion.state import ST_SPEED, ST_X, ST_Y, ST_YAW, ST_YAW_RATE
-from toptag.geometry import wrap_angle
+from toptag.fusion import kernels
+from toptag.fusion.state import ST_SPEED, ST_YAW, ST_YAW_RATE
 
 
 def pose_before(x: np.ndarray, delta: float, accel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(h, H_state, H_delta): the pose (x, y, yaw) `delta` seconds before the state x, the Jacobian of
     h with respect to the first five state entries (x, y, yaw, speed, yaw_rate; 3x5) and with respect
-    to delta (3,)."""
-    v, th, w = x[ST_SPEED], x[ST_YAW], x[ST_YAW_RATE]
-    d = v * delta - 0.5 * accel * delta * delta
-    dd = v - accel * delta  # d(d)/d(delta)
-    phi = th - 0.5 * w * delta
-    c, s = math.cos(phi), math.sin(phi)
-    h = np.array([x[ST_X] - d * c, x[ST_Y] - d * s, wrap_angle(th - w * delta)])
-    Hs = np.zeros((3, 5))
-    Hs[0, ST_X] = Hs[1, ST_Y] = Hs[2, ST_YAW] = 1.0
-    Hs[0, ST_YAW], Hs[1, ST_YAW] = d * s, -d * c
-    Hs[0, ST_SPEED], Hs[1, ST_SPEED] = -delta * c, -delta * s
-    Hs[0, ST_YAW_RATE], Hs[1, ST_YAW_RATE] = -0.5 * delta * d * s, 0.5 * delta * d * c
-    Hs[2, ST_YAW_RATE] = -delta
-    Hd = np.array([-dd * c - 0.5 * w * d * s, -dd * s + 0.5 * w * d * c, -w])
-    return h, Hs, Hd
+    to delta (3,). Compiled (toptag.fusion.kernels.pose_before), as the filter's fix update uses it."""
+    return kernels.pose_before(np.ascontiguousarray(x, dtype=float), float(delta), float(accel))
 
 
 def motion_rate(x: np.ndarray) -> np.ndarray:
