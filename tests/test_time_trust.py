@@ -358,6 +358,29 @@ def test_fixes_from_one_place_do_not_average_their_error_down():
     assert _view_case(share=share, step_m=0.7, sigma=(0.01, 0.05), err=(0.035, 0.2))
 
 
+def test_a_flag_stays_over_passes_while_the_camera_is_still_off():
+    """The 0.2 deg turn over four passes (left, straight, right, a stop) with the default settings, on fixes
+    drawn as the live pipeline's, each pass's filter starting from the last one's memory: once flagged, the
+    camera stays flagged. Standing at the stop, its statistic dipped below the clearing quantile while it
+    still disagreed by more than the 3 cm / 0.1 deg box, and the flag went off and came back (as live, on
+    the 0.2 deg scenario, twice in 300 s); a flag now clears only within the box."""
+    from sim.studies.fusion import LIVE_VIEW_ERROR
+
+    faults = faults_from_options(drift_deg="rsu-se=0.2@0")
+    memory, history = None, []
+    for k, route in enumerate(("left", "straight", "right", "stop")):
+        tr = bus_trajectory(route, "w", seed=0, t0_ns=bus_trajectory(route, "w", seed=0).t0_ns + k * 60 * 10**9)
+        imu = ImuModel().synthesize(tr, 0.0, tr.duration, np.random.default_rng(50 + k))
+        fixes = simulate_fixes(tr, FixErrorModel(**LIVE_VIEW_ERROR), 4, np.random.default_rng(100 + k), faults=faults)
+        flt = BusFilter(FilterConfig(), memory=memory)
+        seen = lambda t: history.append((k, t, "rsu-se" in flt.rsu_assessments() and flt.rsu_assessments()["rsu-se"].flagged))
+        drive(flt, imu, arrivals(fixes, faults, jitter_ms=30, seed=k), on_output=seen)
+        memory = flt.memory()
+    first = next(i for i, (_, _, f) in enumerate(history) if f)
+    assert history[first][0] == 0  # flagged on the first pass
+    assert all(f for _, _, f in history[first:]), [(k, t) for k, t, f in history[first:] if not f][:3]
+
+
 def test_the_study_draws_view_dependent_errors_as_fitted():
     """The fusion study's default fix errors (LIVE_VIEW_ERROR, fitted by `toptag eval livefix`): each fix's
     error, in units of its stated sigma, has unit variance, and the share the fit says is common to the

@@ -49,8 +49,9 @@ sends; a turned camera's grows until it is flagged. An RSU is flagged when
   - the others agree among themselves: each one's deviation from the rest (without this RSU) has a
     T_d at most 1 / `isolation_ratio` of this RSU's.
 It is cleared when, over at least `min_fixes` fixes again and with the others in view, T_d falls
-below the `clear_probability` quantile (old evidence fades with the window: a camera seen agreeing on
-the next pass is cleared within a second or two).
+below the `clear_probability` quantile and |d| is within the floor (old evidence fades with the window: a
+camera seen agreeing on the next pass is cleared within a second or two; one still off by more than the
+floor keeps its flag while its statistic dips).
 Innovations enter only while the filter is healthy (tracking, a fix applied within the last second).
 Innovations are only ever compared within one track: they start afresh for every RSU when the filter
 jumps to a consensus it had rejected (reacquisition), for the others when an RSU is flagged, and for
@@ -297,6 +298,10 @@ class DriftRule:
         what every other precise RSU sees (they would then seem to disagree among themselves)."""
         return np.diag([self.min_pos_m ** 2, self.min_pos_m ** 2, self.min_yaw_rad ** 2])
 
+    def _beyond_floor(self, d: np.ndarray) -> bool:
+        """Larger than a floor that is set (a floor of 0 is none)."""
+        return (0 < self.min_pos_m < math.hypot(d[0], d[1])) or (0 < self.min_yaw_rad < abs(d[2]))
+
     def _large(self, d: np.ndarray) -> bool:
         return math.hypot(d[0], d[1]) > self.min_pos_m or abs(d[2]) > self.min_yaw_rad
 
@@ -358,6 +363,10 @@ class DriftRule:
             if change is not None:
                 rec = rec._replace(change=change[0], change_stat=change[1])
             calm = (change[1] if change is not None else T_d) < self.clear_stat
+            # and no longer as large as a flag needs (with a floor set): a camera still 4-5 cm off whose
+            # statistic dips for a moment (its view error agreeing with the others') keeps its flag
+            # instead of losing it for a second and taking it back.
+            calm = calm and not self._beyond_floor(d if change is None else change[0])
             if calm and n >= self.min_fixes:
                 return rec._replace(flagged_since=None, flagged_by=None)
             return rec
