@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from toptag.jit import compiled
+from toptag.jit import compiled, solve_small
 
 # Layout of `q`, the filter's constants, one array so that a call converts one argument, not ten.
 Q_POS, Q_YAW, Q_V, Q_B, Q_K, Q_D, Q_A, R_G, R_W, CORR_M, Q_J = range(11)
@@ -142,13 +142,7 @@ def kalman(x, P, PHt, S, nu, freeze_lo, freeze_hi):
             t += K[i, k] * nu[k]
         xn[i] += t
     xn[2] = wrap(xn[2])
-    KS = np.zeros((n, m))
-    for i in range(n):
-        for k in range(m):
-            t = 0.0
-            for l in range(m):
-                t += K[i, l] * S[l, k]
-            KS[i, k] = t
+    KS = _matmul(K, S)
     Pn = np.empty((n, n))
     for i in range(n):
         for j in range(n):
@@ -238,24 +232,26 @@ def pose_before(x, delta, accel):
 
 
 @compiled
+def _matmul(A, B):
+    """A B in loops: on the filter's few-by-twenty matrices faster than a BLAS call, and summed in one
+    fixed order."""
+    p, q = A.shape
+    r = B.shape[1]
+    C = np.zeros((p, r))
+    for i in range(p):
+        for k in range(r):
+            t = 0.0
+            for l in range(q):
+                t += A[i, l] * B[l, k]
+            C[i, k] = t
+    return C
+
+
+@compiled
 def _hpht(H, P):
     """(P H', H P H')."""
-    m, n = H.shape
-    PHt = np.zeros((n, m))
-    for r in range(n):
-        for k in range(m):
-            t = 0.0
-            for c in range(n):
-                t += P[r, c] * H[k, c]
-            PHt[r, k] = t
-    S = np.zeros((m, m))
-    for k in range(m):
-        for l in range(m):
-            t = 0.0
-            for r in range(n):
-                t += H[k, r] * PHt[r, l]
-            S[k, l] = t
-    return PHt, S
+    PHt = _matmul(P, H.T)
+    return PHt, _matmul(H, PHt)
 
 
 @compiled
@@ -299,32 +295,12 @@ def fix_model(x, P, pose, i, accel, j, L):
 
 @compiled
 def mahalanobis(S, nu):
-    """nu' S^-1 nu (Gaussian elimination with partial pivoting, as numpy's solve)."""
-    m = nu.shape[0]
-    A = S.copy()
-    b = nu.copy()
-    for col in range(m):
-        piv = col
-        for r in range(col + 1, m):
-            if abs(A[r, col]) > abs(A[piv, col]):
-                piv = r
-        if piv != col:
-            for c in range(m):
-                A[col, c], A[piv, c] = A[piv, c], A[col, c]
-            b[col], b[piv] = b[piv], b[col]
-        for r in range(col + 1, m):
-            f = A[r, col] / A[col, col]
-            for c in range(col + 1, m):
-                A[r, c] -= f * A[col, c]
-            b[r] -= f * b[col]
-    y = np.empty(m)
-    for col in range(m - 1, -1, -1):
-        t = b[col]
-        for c in range(col + 1, m):
-            t -= A[col, c] * y[c]
-        y[col] = t / A[col, col]
+    """nu' S^-1 nu (NaN where S is singular)."""
+    y, ok = solve_small(S, nu)
+    if not ok:
+        return math.nan
     d2 = 0.0
-    for k in range(m):
+    for k in range(nu.shape[0]):
         d2 += nu[k] * y[k]
     return d2
 

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from toptag.jit import compiled
+from toptag.jit import compiled, solve_small
 
 MIN_DEPTH = 1e-6  # model.MIN_DEPTH (model imports this module)
 COST_RTOL = 1e-10  # relative cost change that is rounding or negligible (~1e-5 sigma), not progress
@@ -107,36 +107,6 @@ def evaluate_level(M, pixels, P):
     for b in range(n_b):
         _evaluate_into(M, pixels, P[b, 0], P[b, 1], P[b, 2], P[b, 3], r[b], J[b], front[b])
     return r, J, front
-
-
-@compiled
-def solve_small(A, b):
-    """x with A x = b (n ≤ a few) by Gaussian elimination with partial pivoting; (x, solvable)."""
-    n = len(b)
-    a = A.copy()
-    x = b.copy()
-    for k in range(n):
-        p = k
-        for i in range(k + 1, n):
-            if abs(a[i, k]) > abs(a[p, k]):
-                p = i
-        if not (a[p, k] != 0.0 and math.isfinite(a[p, k])):
-            return x, False
-        if p != k:
-            for j in range(n):
-                a[k, j], a[p, j] = a[p, j], a[k, j]
-            x[k], x[p] = x[p], x[k]
-        for i in range(k + 1, n):
-            f = a[i, k] / a[k, k]
-            for j in range(k, n):
-                a[i, j] -= f * a[k, j]
-            x[i] -= f * x[k]
-    for k in range(n - 1, -1, -1):
-        acc = x[k]
-        for j in range(k + 1, n):
-            acc -= a[k, j] * x[j]
-        x[k] = acc / a[k, k]
-    return x, True
 
 
 @compiled
