@@ -444,7 +444,7 @@ def test_a_deferred_search_runs_between_frames_and_its_find_is_tracked_after(bus
     first = p.process(img1, t1, defer_search=True)
     assert first.search_deferred and not first.acquired and p.search_pending
     assert first.vehicles[bus.id].mode == "waiting" and first.vehicles[bus.id].fix is None
-    assert p._search.jobs and not p._search.found  # begun, nothing run yet
+    assert p._search.jobs and p._search.raw is None and not p.search_ready  # begun, nothing run yet
     second = p.process(img2, t2, defer_search=True)
     assert not second.search_deferred and second.vehicles[bus.id].mode == "waiting"
     got = []

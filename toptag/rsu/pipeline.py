@@ -174,7 +174,6 @@ class _Search:
     jobs: list[DetectJob]  # largest first
     pool: "_DetectorPool"
     wanted: frozenset = frozenset()  # (family, tag id) of the buses sought: the coarse finds worth confirming
-    found: list = field(default_factory=list)  # detections per job, once they have run
     detect_s: float = 0.0
     raw: list | None = None  # all its detections, once its work has run (RsuPipeline.search_work)
     handed_out: bool = False  # its work was given to another thread (search_work)
@@ -540,9 +539,9 @@ class RsuPipeline:
         run = s.pool.run_here if alone else s.pool.run
         t0 = time.perf_counter()
         try:
-            s.found = run(s.gray, s.jobs)
-            raw = [d for job, found in zip(s.jobs, s.found) if job.decimate == 1.0 for d in found]
-            coarse = [d for job, found in zip(s.jobs, s.found) if job.decimate != 1.0 for d in found
+            per_job = run(s.gray, s.jobs)
+            raw = [d for job, found in zip(s.jobs, per_job) if job.decimate == 1.0 for d in found]
+            coarse = [d for job, found in zip(s.jobs, per_job) if job.decimate != 1.0 for d in found
                       if (d.family, d.tag_id) in s.wanted]
             if coarse:
                 raw += self._confirm_full_resolution(s.gray, coarse, run)
