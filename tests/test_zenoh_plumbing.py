@@ -16,7 +16,7 @@ import pytest
 import zenoh
 from conftest import key_for
 
-from protocol import Frame, PoseFix, codec, encode, keys
+from protocol import Frame, Imu, PoseFix, codec, encode, keys
 from protocol.transport import (
     LivelinessWatcher,
     MessageCounters,
@@ -195,6 +195,45 @@ def test_handler_exception_does_not_kill_the_subscription(peer_pair, samples, ca
     assert counters.get("handler_error") == 1 and counters.get("accepted") == 3
     assert any("handler bug" in r.getMessage() for r in caplog.records)
     sub.close()
+
+
+def test_drained_receiver_delivers_what_waited_in_order_and_a_full_ring_drops_the_oldest(peer_pair, samples, caplog):
+    """A pull receiver drained on the consumer's schedule (the bus agent's 50 Hz step): every valid
+    message waiting, oldest first; a bad payload counted and skipped; a failing handler counted, logged and
+    the next message delivered; with drop_oldest a full channel keeps the newest instead of blocking."""
+    a, b = peer_pair
+    imu = samples["Imu"]
+    key = key_for(imu)
+    counters = MessageCounters()
+    sub = subscribe_messages(b, key, Imu, None, counters, logging.getLogger("test.sub"), capacity=4,
+                             drop_oldest=True)
+    pub = raw_publisher(a, key)
+    pub.put(encode(imu.model_copy(update={"seq": 1})))
+    pub.put(b"{}")
+    pub.put(encode(imu.model_copy(update={"seq": 2})))
+    got = []
+    assert wait_until(lambda: got.extend(sub.drain()) or len(got) >= 2, 60)
+    assert [m.seq for m in got] == [1, 2] and counters.get("rejected", Imu) == 1
+    watcher = Inbox()  # a callback subscriber of the same session: when it has seq 12, so has the ring
+    watch = subscribe_messages(b, key, Imu, watcher)
+    assert wait_until(lambda: pub.matching_status.matching, 30)
+    for seq in range(3, 13):  # 10 while nobody drains: the ring keeps the newest 4
+        pub.put(encode(imu.model_copy(update={"seq": seq})))
+    assert watcher.wait(10, 60)
+    caplog.set_level(logging.ERROR, logger="test.sub")
+    seen = []
+
+    def handler(m):
+        seen.append(m.seq)
+        if m.seq == 11:
+            raise RuntimeError("handler bug")
+
+    assert wait_until(lambda: sub.deliver(handler) >= 0 and seen[-1:] == [12], 60)
+    assert seen == sorted(seen) and seen[-4:] == [9, 10, 11, 12] and 3 not in seen  # the oldest dropped
+    assert counters.get("handler_error") == 1
+    assert any("handler bug" in r.getMessage() for r in caplog.records)
+    sub.close()
+    watch.close()
 
 
 # ---- latest-only frames -----------------------------------------------------------------------

@@ -12,6 +12,13 @@ Facts this module relies on (eclipse-zenoh 1.10):
   (skipped) from gaps in the sender's sequence that never arrived (missing).
 - A Subscriber whose handler.recv() is blocked in another thread cannot be undeclared
   ("Already borrowed"): block on ``sub.handler`` (a separate object), never on ``sub``.
+- A callback subscriber runs its callback on a Python thread of its own (zenoh-python's default,
+  ``indirect``): every sample is a thread wake-up and a GIL hand-off. A pull receiver's channel is filled
+  in Zenoh's own thread without Python: a consumer that drains it on its own schedule (``drain``) takes
+  many samples for one wake-up. The bus agent's IMU (100 Hz) and fixes, taken at its 50 Hz step: ~3.5 %
+  of a core for its IMU-callback thread alone (`toptag bench bus`, docs/architecture.md).
+- A FifoChannel that is full blocks the Zenoh thread that fills it (every subscription of the session
+  stalls behind a stalled consumer); a RingChannel (``drop_oldest``) drops its oldest sample instead.
 """
 from __future__ import annotations
 
@@ -51,14 +58,15 @@ class SafeSubscriber(Generic[M]):
     - handler, latest_only=False: handler(msg) runs for every sample on a zenoh callback thread.
     - handler, latest_only=True: a worker thread runs handler(msg) on the newest sample (the slot,
       see the module doc) whenever it is free; older ones are overwritten, never decoded.
-    - handler=None: a pull receiver; call recv(timeout) / try_recv() (latest_only: a slot holding the
-      newest sample, see the module doc; else a FIFO of ``capacity``).
+    - handler=None: a pull receiver; call recv(timeout) / try_recv() / drain() / deliver(handler) (latest_only: a slot
+      holding the newest sample, see the module doc; else a FIFO of ``capacity``, which drops its oldest
+      sample when full with ``drop_oldest`` instead of blocking Zenoh's thread).
     """
 
     def __init__(self, session: zenoh.Session, key: str, msg_type: type[M],
                  handler: Callable[[M], Any] | None = None, *, counters: MessageCounters | None = None,
                  logger: logging.Logger | None = None, latest_only: bool = False, capacity: int = 256,
-                 check_key: bool = True):
+                 check_key: bool = True, drop_oldest: bool = False):
         self.key = str(key)
         self.msg_type = msg_type
         self.handler = handler
@@ -87,7 +95,8 @@ class SafeSubscriber(Generic[M]):
         elif handler is not None:
             self._sub = session.declare_subscriber(self.key, zenoh.handlers.Callback(self._on_sample))
         else:
-            self._sub = session.declare_subscriber(self.key, zenoh.handlers.FifoChannel(capacity))
+            channel = zenoh.handlers.RingChannel if drop_oldest else zenoh.handlers.FifoChannel
+            self._sub = session.declare_subscriber(self.key, channel(capacity))
             self._channel = self._sub.handler  # block on this, never on self._sub (see module doc)
 
     def _keep_newest(self, sample: zenoh.Sample) -> None:
@@ -139,9 +148,9 @@ class SafeSubscriber(Generic[M]):
                 self._last_seq[skey] = seq
         return msg
 
-    def _call(self, msg: M) -> None:
+    def _call(self, msg: M, handler: Callable[[M], Any] | None = None) -> None:
         try:
-            self.handler(msg)  # type: ignore[misc]
+            (handler or self.handler)(msg)  # type: ignore[misc]
         except Exception as e:
             self.counters.inc(HANDLER_ERROR, self._name, self.key, error=repr(e))
             self._limit(self.log, logging.ERROR, "handler for %s on %s failed: %s: %s",
@@ -179,6 +188,25 @@ class SafeSubscriber(Generic[M]):
             msg = self._decode(sample)
             if msg is not None:
                 return msg
+
+    def drain(self) -> list[M]:
+        """Every valid message waiting, oldest first, without blocking (not for latest_only: its slot holds
+        one; try_recv takes it)."""
+        if self.latest_only:
+            raise RuntimeError("a latest-only receiver holds one sample: use try_recv()")
+        out = []
+        while (msg := self.try_recv()) is not None:
+            out.append(msg)
+        return out
+
+    def deliver(self, handler: Callable[[M], Any]) -> int:
+        """drain() to handler, one message at a time, each call guarded as a callback subscriber's (an
+        exception is counted as handler_error and logged, and the next message is delivered); returns how
+        many were delivered."""
+        msgs = self.drain()
+        for msg in msgs:
+            self._call(msg, handler)
+        return len(msgs)
 
     def recv(self, timeout: float | None = None, poll_s: float = 0.001) -> M | None:
         """Wait for the next valid message; None on timeout or once closed. Invalid payloads are
@@ -241,9 +269,9 @@ class SafeSubscriber(Generic[M]):
 def subscribe_messages(session: zenoh.Session, key: str, msg_type: type[M],
                        handler: Callable[[M], Any] | None = None, counters: MessageCounters | None = None,
                        logger: logging.Logger | None = None, *, latest_only: bool = False,
-                       capacity: int = 256, check_key: bool = True) -> SafeSubscriber[M]:
+                       capacity: int = 256, check_key: bool = True, drop_oldest: bool = False) -> SafeSubscriber[M]:
     return SafeSubscriber(session, key, msg_type, handler, counters=counters, logger=logger,
-                          latest_only=latest_only, capacity=capacity, check_key=check_key)
+                          latest_only=latest_only, capacity=capacity, check_key=check_key, drop_oldest=drop_oldest)
 
 
 def latest_receiver(session: zenoh.Session, key: str, msg_type: type[M] = Frame,

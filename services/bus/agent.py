@@ -8,6 +8,14 @@ capture time, and publishes FusedPose at 50 Hz with covariance and health. Once 
 its assessment of every RSU it has heard from lately (RsuDiagnosis: the RSU's estimated time offset,
 its drift flag and disagreement) on keys.rsu_diagnosis, which the RSUs and the monitor read. Its
 Approach carries its host's clock (toptag.hostclock).
+
+One thread does the work: its IMU samples, GNSS fixes and PoseFixes wait in Zenoh's channels (filled
+without Python) and each 50 Hz step takes them in (IMU, then GNSS, then fixes, each in arrival order)
+before it estimates. A fix's arrival, for the filter's health and the latency log, is when the step took
+it in (up to one output period after it reached the process). The step's output holds the same inputs
+as when a callback thread fed each message to the filter on arrival; it costs one wake-up per step
+instead of one per message (with a thread hop and a GIL hand-off each: most of the agent's CPU at
+100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md).
 """
 from __future__ import annotations
 
@@ -65,6 +73,11 @@ ANNOUNCED_SIGMA_FLOOR_M = 0.05
 ANNOUNCED_SIGMA_PER_M = 0.005
 DIAGNOSIS_PERIOD_S = 1.0
 DIAGNOSIS_KEEP_S = 30.0  # an RSU not heard from for this long is no longer assessed on the wire
+# What the channels hold between two steps (the oldest dropped beyond, rather than stall Zenoh's thread):
+# 10 s of IMU at 100 Hz, and of fixes from 4 RSUs at 10 Hz and more; a step that late meets an IMU gap anyway.
+IMU_QUEUE = 1024
+FIX_QUEUE = 512
+GNSS_QUEUE = 16
 
 
 class BusSettings(ServiceSettings):
@@ -109,12 +122,21 @@ class BusAgent:
         self._last_diagnosis = 0.0
         self._flagged: set[str] = set()
         self._fused_pub = MessagePublisher(session, keys.fused_pose(self.bus_id), FusedPose)
-        self._subs = [
-            subscribe_messages(session, keys.imu(self.bus_id), Imu, self._on_imu, self.counters, log),
-            subscribe_messages(session, keys.gnss(self.bus_id), GnssFix, self._on_gnss, self.counters, log),
-        ]
+        self._imu_sub = subscribe_messages(session, keys.imu(self.bus_id), Imu, None, self.counters, log,
+                                           capacity=IMU_QUEUE, drop_oldest=True)
+        self._gnss_sub = subscribe_messages(session, keys.gnss(self.bus_id), GnssFix, None, self.counters, log,
+                                            capacity=GNSS_QUEUE, drop_oldest=True)
+        self._subs = [self._imu_sub, self._gnss_sub]
 
-    # ---- inputs (Zenoh threads) ---------------------------------------------------------------
+    # ---- inputs (taken in by the step) -------------------------------------------------------------
+    def take_inputs(self) -> None:
+        """Everything received since the last call, fed to the filter: IMU, GNSS, then fixes."""
+        self._imu_sub.deliver(self._on_imu)
+        self._gnss_sub.deliver(self._on_gnss)
+        if self._fix_sub is not None:
+            now = time.time_ns()
+            self._fix_sub.deliver(lambda m: self._on_fix(m, now))
+
     def _on_imu(self, m: Imu) -> None:
         with self._lock:
             if self._last_imu_ns is not None and s_from_ns(m.t_ns - self._last_imu_ns) > IMU_GAP_RESET_S:
@@ -134,8 +156,7 @@ class BusAgent:
         with self._lock:
             self._gnss = m
 
-    def _on_fix(self, m: PoseFix) -> None:
-        now = time.time_ns()
+    def _on_fix(self, m: PoseFix, now: int) -> None:
         if m.bus_id != self.bus_id:
             return
         with self._lock:
@@ -164,7 +185,7 @@ class BusAgent:
                                   reference_time_ns=time.time_ns(), clock=clock_to_message(self.clock.current()),
                                   seq=0)
         self._fix_sub = subscribe_messages(self.session, keys.pose_fix(inter.id, self.bus_id, keys.ANY), PoseFix,
-                                           self._on_fix, self.counters, log)
+                                           None, self.counters, log, capacity=FIX_QUEUE, drop_oldest=True)
         # Queryable and token before the announcement: an RSU that hears the Approach late, or starts
         # later, finds both.
         self._queryable = serve_session(self.session, lambda: self._approach, logger=log)
@@ -199,6 +220,7 @@ class BusAgent:
         """Presence, repeated announcements and the fused output, once per output period. One filter
         estimate at now_ns serves all three (position, whereabouts and the fused pose are of the same
         instant; it was estimated up to three times per step)."""
+        self.take_inputs()
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
             gnss, speed = self._gnss, self._wheel_speed
