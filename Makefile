@@ -11,6 +11,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet -e '.[test]'
 	$(BIN)/python -m toptag.solvers.warmup  # the solvers' numba kernels into their on-disk cache
+	$(BIN)/python -m sim.render_kernels  # and the renderer's
 	touch $@
 
 # The live view's browser test drives Debian's chromium headless (Playwright's own browser download

@@ -7,7 +7,8 @@
   (pairwise separating planes of the ground footprints, which is exact for disjoint upright boxes);
 - each layer is evaluated per pixel by inverse mapping (pixel -> exact undistorted ray -> face / tag
   plane -> cell), and re-evaluated with `model.supersample`² samples only at pixels whose footprint
-  crosses an edge (box filter: exact coverage up to the sample count);
+  crosses an edge (box filter: exact coverage up to the sample count; those samples in compiled code,
+  sim.render_kernels);
 - moving layers are blurred along their image-space motion during the exposure (symmetric kernel: the
   rendered pose is the mid-exposure pose), then composited over what is behind them;
 - then the image model: Gaussian blur, gain, sensor noise, JPEG (sim.image_model).
@@ -24,6 +25,7 @@ import cv2
 import numpy as np
 
 from sim.image_model import ImageModel
+from sim import render_kernels
 from sim.patterns import grid_size, tag_cells
 from sim.raster import NOISE_BANK_EXTRA, CameraRaster, optics_reach, raster_for
 from toptag.camera import Camera
@@ -207,70 +209,29 @@ def _face_colors(box: _Box) -> np.ndarray:
     return lut
 
 
-def _tag_values(tags: list[_Tag], xn, yn, base):
-    """Colour of roof points seen along normalized rays (xn, yn): tag level inside a plate, else base.
-    Only the rays within a tag's bounds are mapped into its grid (the others cannot meet it)."""
-    out = np.array(base, dtype=np.float32, copy=True)
-    for tg in tags:
-        if tg.bounds is not None:
-            b = tg.bounds
-            sel = np.nonzero((xn >= b[0]) & (xn <= b[1]) & (yn >= b[2]) & (yn <= b[3]))
-            if not len(sel[0]):
-                continue
-            x, y = xn[sel], yn[sel]
-        else:
-            sel, x, y = ..., xn, yn
-        H = tg.H
-        w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-        r = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w
-        c = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
-        inside = (r >= 0) & (r < tg.n) & (c >= 0) & (c < tg.n)
-        ri = np.clip(r, 0, tg.n - 1).astype(np.intp)
-        ci = np.clip(c, 0, tg.n - 1).astype(np.intp)
-        out[sel] = np.where(inside, tg.levels[ri, ci], out[sel])
-    return out
+# Per axis of the box frame (x, y, z), the face a ray enters through when it runs toward -k, and toward +k.
+_ENTERED_FACES = np.array([[FRONT, REAR], [LEFT, RIGHT], [ROOF, 0]], np.int64)
 
 
-def _ray_box(box: _Box, camera: Camera, xn, yn, colors, tags):
-    """Exact colour and hit mask of rays (normalized coords, any shape) against the box."""
+def _supersample_box(rast: CameraRaster, box: _Box, ys: np.ndarray, xs: np.ndarray, offsets: np.ndarray,
+                     colors: np.ndarray, tags: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage and premultiplied colour (float32) of image pixels (ys, xs) by the box, each the mean of
+    exact ray casts at its sub-pixel `offsets` (box faces, and the roof's tags: render_kernels.stack_tags)."""
     Rz = rot_z(box.yaw)
-    M = Rz.T @ camera.R.T
-    o = Rz.T @ (camera.center - [box.x, box.y, 0.0])
+    M = Rz.T @ rast.camera.R.T
+    o = Rz.T @ (rast.camera.center - [box.x, box.y, 0.0])
     lo = np.array([-box.length / 2, -box.width / 2, 0.0])
     hi = np.array([box.length / 2, box.width / 2, box.height])
-    t_near = np.full(xn.shape, -np.inf)
-    t_far = np.full(xn.shape, np.inf)
-    label = np.zeros(xn.shape, np.intp)
-    # The slab test with every temporary reused in place (the same IEEE operations as the plain
-    # expressions, so the same bits: these rays are most of a vehicle's cost).
-    d, t1, t2, tmp = (np.empty(xn.shape) for _ in range(4))
-    better, neg = np.empty(xn.shape, bool), np.empty(xn.shape, bool)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # (face entered when the ray runs toward -k, face entered when it runs toward +k)
-        for k, (neg_face, pos_face) in enumerate(((FRONT, REAR), (LEFT, RIGHT), (ROOF, 0))):
-            np.multiply(xn, M[k, 0], out=d)
-            np.multiply(yn, M[k, 1], out=tmp)
-            d += tmp
-            d += M[k, 2]
-            np.divide(lo[k] - o[k], d, out=t1)
-            np.divide(hi[k] - o[k], d, out=t2)
-            np.maximum(t1, t2, out=tmp)
-            np.minimum(t_far, tmp, out=t_far)
-            np.minimum(t1, t2, out=tmp)
-            np.greater(tmp, t_near, out=better)
-            # Entering through the low face when the ray goes +k, the high face when it goes -k.
-            np.less(d, 0, out=neg)
-            np.copyto(label, pos_face, where=better)
-            neg &= better
-            np.copyto(label, neg_face, where=neg)
-            np.copyto(t_near, tmp, where=better)
-    hit = (t_near <= t_far) & (t_near > 0) & (label > 0)
-    col = colors[np.where(hit, label, 0)]
-    if tags:
-        roof = np.nonzero(hit & (label == ROOF))
-        if len(roof[0]):
-            col[roof] = _tag_values(tags, xn[roof], yn[roof], col[roof])
-    return col, hit
+    return render_kernels.supersample_box(rast.xn.ravel(), rast.yn.ravel(), rast.width, rast.height, ys, xs,
+                                          offsets, M, o, lo, hi, _ENTERED_FACES, colors, *tags)
+
+
+def _supersample_tags(rast: CameraRaster, ys: np.ndarray, xs: np.ndarray, offsets: np.ndarray, roof_color,
+                      tags: tuple) -> np.ndarray:
+    """Mean grey level (float32) of roof pixels (ys, xs) over their sub-pixel `offsets`: the tags' cells
+    where a sample's ray meets one, the roof's colour elsewhere."""
+    return render_kernels.supersample_tags(rast.xn.ravel(), rast.yn.ravel(), rast.width, rast.height, ys, xs,
+                                           offsets, np.float32(roof_color), *tags)
 
 
 # ---- supersampling ------------------------------------------------------------------------------
@@ -300,28 +261,6 @@ def sample_offsets(s: int) -> np.ndarray:
     return _PATTERNS[s]
 
 
-def _subsample_rays(rast: CameraRaster, ys: np.ndarray, xs: np.ndarray, offsets: np.ndarray):
-    """Normalized coords at sub-pixel offsets of pixels (ys, xs): first order in the cached exact map
-    (the lens map is smooth: the second-order error over half a pixel is ~1e-5 px)."""
-    H, W = rast.height, rast.width
-    xm, xp = np.maximum(xs - 1, 0), np.minimum(xs + 1, W - 1)
-    ym, yp = np.maximum(ys - 1, 0), np.minimum(ys + 1, H - 1)
-    X, Y = rast.xn.ravel(), rast.yn.ravel()  # flat indices: one gather each instead of two
-    row = ys * W
-    here, left, right, up, down = row + xs, row + xm, row + xp, ym * W + xs, yp * W + xs
-    sx = (xp - xm).astype(np.float64)
-    sy = (yp - ym).astype(np.float64)
-    ou, ov = offsets[:, 0][None, :], offsets[:, 1][None, :]
-
-    def lattice(A):  # A[here] + A_u * ou + A_v * ov, with A_u, A_v the central differences
-        out = ((A[right] - A[left]) / sx)[:, None] * ou
-        out += A[here].astype(np.float64)[:, None]
-        out += ((A[down] - A[up]) / sy)[:, None] * ov
-        return out
-
-    return lattice(X), lattice(Y)
-
-
 # Pixels whose centre lies within this distance of a projected edge are supersampled: the samples' half
 # diagonal (0.71 px) plus a margin above the edges' rasterisation (fillPoly at 1/16 px) and the chords'
 # error (edges are subdivided so that lens distortion bends them: sim.raster.project_polygon).
@@ -334,25 +273,7 @@ def _near_edges(outlines: list[np.ndarray], x0: int, y0: int, h: int, w: int, re
     outline (M, 2)."""
     a = np.vstack(outlines) - [x0, y0]
     b = np.vstack([np.roll(o, -1, axis=0) for o in outlines]) - [x0, y0]
-    d = b - a
-    m = np.maximum(1, np.ceil(np.hypot(d[:, 0], d[:, 1]) / _PIECE_PX)).astype(int)
-    edge = np.repeat(np.arange(len(a)), m)
-    k = np.arange(len(edge)) - np.repeat(np.cumsum(m) - m, m)
-    p = a[edge] + (k / m[edge])[:, None] * d[edge]
-    q = a[edge] + ((k + 1) / m[edge])[:, None] * d[edge]
-    lo = np.floor(np.minimum(p, q) - reach).astype(int)
-    span = int(np.ceil(_PIECE_PX + 2 * reach)) + 2
-    gx = lo[:, 0, None, None] + np.arange(span)[None, None, :]
-    gy = lo[:, 1, None, None] + np.arange(span)[None, :, None]
-    pq = q - p
-    L2 = np.maximum((pq ** 2).sum(axis=1), 1e-12)[:, None, None]
-    ux, uy = gx - p[:, 0, None, None], gy - p[:, 1, None, None]
-    t = np.clip((ux * pq[:, 0, None, None] + uy * pq[:, 1, None, None]) / L2, 0.0, 1.0)
-    ex, ey = ux - t * pq[:, 0, None, None], uy - t * pq[:, 1, None, None]
-    near = (ex * ex + ey * ey <= reach * reach) & (gx >= 0) & (gx < w) & (gy >= 0) & (gy < h)
-    mask = np.zeros((h, w), bool)
-    mask[np.broadcast_to(gy, near.shape)[near], np.broadcast_to(gx, near.shape)[near]] = True
-    return mask
+    return render_kernels.near_edges(a, b, h, w, float(reach), _PIECE_PX)
 
 
 # ---- one layer ----------------------------------------------------------------------------------
@@ -510,38 +431,9 @@ def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model
             continue
         xn = rast.xn[ty0:ty1, tx0:tx1].astype(np.float64)
         yn = rast.yn[ty0:ty1, tx0:tx1].astype(np.float64)
-        H = tg.H
-        wgt = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
-        r = (H[0, 0] * xn + H[0, 1] * yn + H[0, 2]) / wgt
-        c = (H[1, 0] * xn + H[1, 1] * yn + H[1, 2]) / wgt
         sl = (slice(ty0 - y0, ty1 - y0), slice(tx0 - x0, tx1 - x0))
-        roof = label[sl] == ROOF
-        n = tg.n
-        inside = (r >= 0) & (r < n) & (c >= 0) & (c < n)
-        ri = np.clip(r, 0, n - 1).astype(np.intp)
-        ci = np.clip(c, 0, n - 1).astype(np.intp)
-        sub = color[sl]
-        sub[roof & inside] = tg.levels[ri, ci][roof & inside]
-        # Footprint half-extent in cells (linearised pixel square), then the cell at its 4 corners.
-        if r.shape[0] > 1 and r.shape[1] > 1:
-            rv, ru = np.gradient(r)
-            cv_, cu = np.gradient(c)
-        else:
-            ru = rv = cu = cv_ = np.ones_like(r)
-        er = 0.5 * (np.abs(ru) + np.abs(rv)) * 1.02 + 1e-3
-        ec = 0.5 * (np.abs(cu) + np.abs(cv_)) * 1.02 + 1e-3
-        near = (r + er >= 0) & (r - er <= n) & (c + ec >= 0) & (c - ec <= n)
-
-        def cell(rr, cc):
-            ok = (rr >= 0) & (rr < n) & (cc >= 0) & (cc < n)
-            v = tg.levels[np.clip(rr, 0, n - 1).astype(np.intp), np.clip(cc, 0, n - 1).astype(np.intp)]
-            return np.where(ok, v, -1.0)
-
-        v00 = cell(r - er, c - ec)
-        edge = (v00 != cell(r - er, c + ec)) | (v00 != cell(r + er, c - ec)) | (v00 != cell(r + er, c + ec))
-        edge |= (er > 0.5) | (ec > 0.5)
         mask = np.zeros((h, w), bool)
-        mask[sl] = edge & near & roof
+        mask[sl] = render_kernels.tag_cells(xn, yn, tg.H, tg.n, tg.levels, label[sl] == ROOF, color[sl])
         tag_edge.append((tg, mask))
 
     alpha = (label > 0).astype(np.float32)
@@ -551,11 +443,8 @@ def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model
         # Silhouette and face edges: full ray casting (box + tags) at every sample.
         ys, xs = np.nonzero(band)
         if len(ys):
-            sxn, syn = _subsample_rays(rast, ys + y0, xs + x0, offs)
-            col, hit = _ray_box(box, camera, sxn, syn, colors, tags)
-            a = hit.mean(axis=1)
-            alpha[ys, xs] = a
-            premult[ys, xs] = (col * hit).mean(axis=1)
+            alpha[ys, xs], premult[ys, xs] = _supersample_box(rast, box, ys + y0, xs + x0, offs, colors,
+                                                              render_kernels.stack_tags(tags))
         # Tag cell edges inside the roof: the roof-plane homography of that tag suffices (of all
         # tags where plates touch).
         shared = np.sum([m for _, m in tag_edge], axis=0) > 1 if len(tag_edge) > 1 else None
@@ -565,9 +454,8 @@ def _render_layer(rast: CameraRaster, box: _Box, pv: PlacedVehicle | None, model
         for group, mask in groups:
             ys, xs = np.nonzero(mask & ~band)
             if len(ys):
-                sxn, syn = _subsample_rays(rast, ys + y0, xs + x0, offs)
-                base = np.full(sxn.shape, colors[ROOF], np.float32)
-                premult[ys, xs] = _tag_values(group, sxn, syn, base).mean(axis=1)
+                premult[ys, xs] = _supersample_tags(rast, ys + y0, xs + x0, offs, colors[ROOF],
+                                                    render_kernels.stack_tags(group))
     if pv is not None and (model.shadow > 0 or model.glare > 0) and rng is not None:
         factor, added = _roof_light(rast, box, x0, y0, label == ROOF, model, rng)
         premult = premult * factor + added * alpha

@@ -26,13 +26,15 @@ SUMMARY = "summary"
 
 
 def pytest_configure(config):
-    """The solvers' and the bus filter's compiled kernels into numba's on-disk cache once, before any test
-    (or process a test starts) solves or filters: a process without the cache compiles them on its first
-    call, seconds of CPU (toptag/solvers/warmup.py). xdist's workers start after the controller's configure."""
+    """The solvers', the bus filter's and the renderer's compiled kernels into numba's on-disk cache once,
+    before any test (or process a test starts) solves, filters or renders: a process without the cache
+    compiles them on its first call, seconds of CPU (toptag/solvers/warmup.py, sim/render_kernels.py). xdist's workers start after the controller's configure."""
     if not hasattr(config, "workerinput"):
+        from sim.render_kernels import warm_up as warm_up_renderer
         from toptag.solvers.warmup import warm_up_all
 
         warm_up_all()
+        warm_up_renderer()
 
 
 def pytest_terminal_summary(terminalreporter, config):

@@ -21,8 +21,8 @@ pytestmark = pytest.mark.unit
 # Plain functions and small classes: no network, no processes, no Zenoh, no wire contract.
 PURE = ["toptag/camera.py", "toptag/vehicle.py", "toptag/geometry.py", "toptag/detection.py", "toptag/fix.py",
         "toptag/units.py", "toptag/limits.py", "toptag/errors.py",
-        "toptag/solvers", "toptag/rsu", "toptag/fusion", "sim/render.py", "sim/motion.py", "sim/world.py",
-        "sim/scenario.py"]
+        "toptag/solvers", "toptag/rsu", "toptag/fusion", "sim/render.py", "sim/render_kernels.py", "sim/motion.py",
+        "sim/world.py", "sim/scenario.py"]
 IMPURE_MODULES = {"zenoh", "protocol", "socket", "subprocess"}
 
 

@@ -12,6 +12,7 @@ from sim.image_model import ImageModel, perturb_camera
 from sim.patterns import grid_size, tag_cells
 from sim.raster import raster_for
 from sim.render import Occluder, PlacedVehicle, render
+from sim.render_kernels import stack_tags
 from sim.scene import bundled_vehicle, rsu_camera
 from sim.raster import optics
 from toptag.detection import DetectorSettings, TagDetector, detect_vehicle_tags
@@ -121,13 +122,40 @@ def test_edge_supersampling_matches_brute_force(dist):
         # sample finds it as surely as every pixel does, at a third of the rays.
         pick = np.random.default_rng(int(d)).random(h * w) < SAMPLED_SHARE
         ys, xs = np.mgrid[layer.y0:layer.y0 + h, layer.x0:layer.x0 + w]
-        sx, sy = R._subsample_rays(rast, ys.ravel()[pick], xs.ravel()[pick], R.sample_offsets(12))
-        col, hit = R._ray_box(box, cam, sx, sy, R._face_colors(box), R._tag_layers(pv, cam, model))
-        alpha = hit.mean(axis=1)
-        premult = (col * hit).mean(axis=1)
+        alpha, premult = R._supersample_box(rast, box, ys.ravel()[pick], xs.ravel()[pick], R.sample_offsets(12),
+                                            R._face_colors(box), stack_tags(R._tag_layers(pv, cam, model)))
         assert np.abs(alpha - layer.alpha.ravel()[pick]).max() < 0.2
         assert np.abs(premult - layer.premult.ravel()[pick]).max() < 0.2 * 255
         assert np.abs(premult - layer.premult.ravel()[pick]).mean() < 0.5
+
+
+def test_compiled_ray_cast_hits_the_faces_the_camera_projects():
+    """The supersampling kernel against plain projection: a pixel on the projected centre of a face sees
+    that face (the roof: its colour, or a tag's grey level on a plate), a pixel far from the bus sees
+    nothing (the image corner farthest from it); one sample at the pixel centre each."""
+    cam = rsu_camera("sw")
+    rast = raster_for(cam)
+    bus = bundled_vehicle("bus_double")
+    model = ImageModel.ideal()
+    pv = place(cam, bus, 10.0, 0.1, yaw=0.4)
+    box, _ = R._as_box(pv)
+    colors = R._face_colors(box)
+    tags = R._tag_layers(pv, cam, model)
+    pixels, want = [], []
+    for label, poly, _normal in R._face_polygons(box, cam.center):
+        u, v = np.rint(cam.project(poly.mean(axis=0)[None])[0]).astype(int)
+        pixels.append((v, u))
+        want.append(colors[label] if label != R.ROOF else None)
+    centre = cam.project(np.array([[pv.x, pv.y, box.height]]))[0]
+    corners = [(0, 0), (0, cam.width - 1), (cam.height - 1, 0), (cam.height - 1, cam.width - 1)]
+    pixels.append(max(corners, key=lambda c: np.hypot(c[1] - centre[0], c[0] - centre[1])))
+    ys, xs = (np.array(a, np.int64) for a in zip(*pixels))
+    alpha, premult = R._supersample_box(rast, box, ys, xs, np.zeros((1, 2)), colors, stack_tags(tags))
+    assert list(alpha) == [1.0] * (len(pixels) - 1) + [0.0], alpha
+    assert premult[-1] == 0.0
+    levels = {float(colors[R.ROOF]), float(model.tag_white), float(model.tag_black)}
+    for got, w in zip(premult[:-1], want):
+        assert (float(got) in levels) if w is None else got == w, (got, w)
 
 
 def test_frame_region_update_is_seamless():
@@ -375,12 +403,12 @@ def test_only_pixels_an_edge_can_cross_are_supersampled_and_the_image_is_unchang
     world.start(0)
     model = world.model.model_copy(update={"jpeg_quality": 0, "noise_sigma": 0.0})
     cast = {"cut": 0, "whole": 0}
-    ray_box = R._ray_box
+    supersample = R._supersample_box
 
     def counting(which):
-        def f(box, camera, xn, yn, colors, tags):
-            cast[which] += xn.shape[0]
-            return ray_box(box, camera, xn, yn, colors, tags)
+        def f(rast, box, ys, xs, offsets, colors, tags):
+            cast[which] += len(ys) * len(offsets)
+            return supersample(rast, box, ys, xs, offsets, colors, tags)
         return f
 
     near_edges = R._near_edges
@@ -391,10 +419,10 @@ def test_only_pixels_an_edge_can_cross_are_supersampled_and_the_image_is_unchang
         if not vehicles and not occluders:
             continue
         for cam in world.cameras:
-            monkeypatch.setattr(R, "_ray_box", counting("cut"))
+            monkeypatch.setattr(R, "_supersample_box", counting("cut"))
             monkeypatch.setattr(R, "_near_edges", near_edges)
             cut = render(cam, vehicles, occluders, model, np.random.default_rng(k))
-            monkeypatch.setattr(R, "_ray_box", counting("whole"))
+            monkeypatch.setattr(R, "_supersample_box", counting("whole"))
             monkeypatch.setattr(R, "_near_edges", lambda o, x0, y0, h, w, reach: np.ones((h, w), bool))
             whole = render(cam, vehicles, occluders, model, np.random.default_rng(k))
             assert np.array_equal(cut, whole), (k, cam.id)
