@@ -41,6 +41,19 @@ def _ray_lattice(X, Y, W, H, y, x):
 
 
 @compiled
+def _sample(lattice, ou, ov):
+    """The ray (xn, yn) at sub-pixel offset (ou, ov) of a pixel's _ray_lattice."""
+    x0, xu, xv, y0, yu, yv = lattice
+    xn = xu * ou
+    xn += x0
+    xn += xv * ov
+    yn = yu * ou
+    yn += y0
+    yn += yv * ov
+    return xn, yn
+
+
+@compiled
 def _tag_level(xn, yn, base, tag_H, tag_n, tag_levels, tag_bounds, has_bounds):
     """The roof's grey level along the ray: the last tag whose printed grid it meets, else base."""
     out = base
@@ -88,15 +101,9 @@ def supersample_box(X, Y, W, H, ys, xs, offsets, M, o, lo, hi, faces, colors, ta
     for i in range(n):
         hits = 0
         acc = np.float32(0.0)
-        x0, xu, xv, y0, yu, yv = _ray_lattice(X, Y, W, H, ys[i], xs[i])
+        lattice = _ray_lattice(X, Y, W, H, ys[i], xs[i])
         for j in range(s):
-            ou, ov = offsets[j, 0], offsets[j, 1]
-            xn = xu * ou
-            xn += x0
-            xn += xv * ov
-            yn = yu * ou
-            yn += y0
-            yn += yv * ov
+            xn, yn = _sample(lattice, offsets[j, 0], offsets[j, 1])
             t_near, t_far, label = -math.inf, math.inf, 0
             for k in range(3):
                 d = xn * M[k, 0] + yn * M[k, 1] + M[k, 2]
@@ -127,15 +134,9 @@ def supersample_tags(X, Y, W, H, ys, xs, offsets, base, tag_H, tag_n, tag_levels
     out = np.empty(n, np.float32)
     for i in range(n):
         acc = np.float32(0.0)
-        x0, xu, xv, y0, yu, yv = _ray_lattice(X, Y, W, H, ys[i], xs[i])
+        lattice = _ray_lattice(X, Y, W, H, ys[i], xs[i])
         for j in range(s):
-            ou, ov = offsets[j, 0], offsets[j, 1]
-            xn = xu * ou
-            xn += x0
-            xn += xv * ov
-            yn = yu * ou
-            yn += y0
-            yn += yv * ov
+            xn, yn = _sample(lattice, offsets[j, 0], offsets[j, 1])
             acc += _tag_level(xn, yn, base, tag_H, tag_n, tag_levels, tag_bounds, has_bounds)
         out[i] = acc / np.float32(s)
     return out
