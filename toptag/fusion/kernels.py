@@ -2,7 +2,8 @@
 rate's random step and the gyro/wheel update (toptag.fusion.filter: `_predict`, `_yaw_rate_noise`,
 `_imu_update`, `_kalman`), a pose fix's prediction, gate and Kalman update (`_apply_fix`, `_gate`;
 toptag.fusion.offsets.pose_before), and the growth of an estimate's covariance beyond the newest IMU
-sample (`_unmeasured_motion`), which the bus agent asks for at 50 Hz.
+sample (`_unmeasured_motion`), which the bus agent asks for at 50 Hz, and the drift detector's arithmetic
+(toptag.fusion.trust: `DriftRule.accumulate`, `_deviation`; `drift_accumulate`, `drift_deviation`).
 
 Why compiled. A fix arriving ~100 ms late re-runs the ~10 IMU steps after its capture time; at 40
 fixes/s that is 4-5 steps per IMU sample received. Each step is a few dozen numpy calls on a state of
@@ -357,6 +358,109 @@ def unmeasured_motion(P, v, th, q, tau):
     return Pn
 
 
+@compiled
+def _inverse(A):
+    """(A^-1, invertible) column by column with solve_small (Gaussian elimination, partial pivoting)."""
+    n = A.shape[0]
+    out = np.empty((n, n))
+    e = np.zeros(n)
+    for j in range(n):
+        e[:] = 0.0
+        e[j] = 1.0
+        col, ok = solve_small(A, e)
+        if not ok:
+            return out, False
+        for i in range(n):
+            out[i, j] = col[i]
+    return out, True
+
+
+@compiled
+def _matvec(A, v):
+    n, m = A.shape
+    out = np.zeros(n)
+    for i in range(n):
+        acc = 0.0
+        for k in range(m):
+            acc += A[i, k] * v[k]
+        out[i] = acc
+    return out
+
+
+@compiled
+def chi2(d, C):
+    """d' C^-1 d (toptag.fusion.trust's test statistic; 0 where C is singular, as there)."""
+    y, ok = solve_small(C, d)
+    if not ok:
+        return 0.0
+    s = 0.0
+    for k in range(d.shape[0]):
+        s += d[k] * y[k]
+    return s
+
+
+@compiled
+def drift_accumulate(nu, S, B, R, sqrtR, floor, clip_d2, white_share2, view, first, w, A0, A20, b0, Bs0, sw0, sw20,
+                     view_first, Q0, H0, rho, bias_floor, view_share2):
+    """toptag.fusion.trust.DriftRule.accumulate's arithmetic on 3x3 blocks (the same expressions in the
+    same order): the clipped innovation, its information added to the faded sums, the view-error terms
+    (rho: the fading of H by the time and the distance since the RSU's last fix), then the mean, its
+    covariance, the statistic and the bias covariance (DriftRule.bias_cov). Returns (A, A2, b, Bs, sw, sw2,
+    Q, H, stat, m, C, bias_c, ok); ok False where S or A is singular (np.linalg.inv raised there)."""
+    d2 = chi2(nu, S + floor)
+    if d2 > clip_d2:
+        nu = nu * math.sqrt(clip_d2 / d2)
+    if view:
+        S = S - white_share2 * R
+    Si, ok = _inverse(S)
+    z3 = np.zeros((3, 3))
+    if not ok:
+        return z3, z3, np.zeros(3), z3, 0.0, 0.0, z3, z3, 0.0, np.zeros(3), z3, z3, False
+    X = _matmul(Si, sqrtR)
+    if first:
+        A, A2, b, sw, sw2, Bs = Si, Si, _matvec(Si, nu), 1.0, 1.0, B
+    else:
+        A, A2, b = w * A0 + Si, (w * w) * A20 + Si, w * b0 + _matvec(Si, nu)
+        sw, sw2, Bs = w * sw0 + 1.0, w * w * sw20 + 1.0, w * Bs0 + B
+    Q, H = z3, z3
+    if view and view_first:
+        Q, H = _matmul(X, X.T.copy()), X
+    elif view:
+        Hp = rho * H0
+        cross = _matmul(X, Hp.T.copy())
+        Q, H = (w * w) * Q0 + _matmul(X, X.T.copy()) + cross + cross.T.copy(), Hp + X
+    Ai, ok = _inverse(A)
+    if not ok:
+        return z3, z3, np.zeros(3), z3, 0.0, 0.0, z3, z3, 0.0, np.zeros(3), z3, z3, False
+    stat = chi2(b, A2)
+    m = _matvec(Ai, b)
+    C = _matmul(_matmul(Ai, A2), Ai)
+    Bc = Bs / sw + bias_floor
+    if view:
+        Bc = Bc + view_share2 * _matmul(_matmul(Ai, Q), Ai)
+    return A, A2, b, Bs, sw, sw2, Q, H, stat, m, C, Bc, True
+
+
+@compiled
+def drift_deviation(m, C, Bc, Ms, Cs, Bcs):
+    """toptag.fusion.trust.DriftRule._deviation's arithmetic: one RSU's mean innovation m (covariance C,
+    bias covariance Bc) against k others' (rows of Ms, Cs, Bcs): (d = m - their mean, T_d, their mean, the
+    noise covariance of d, the bias covariance of d)."""
+    k = Ms.shape[0]
+    mo = np.zeros(3)
+    Cs_sum = np.zeros((3, 3))
+    Bs_sum = np.zeros((3, 3))
+    for j in range(k):
+        mo = mo + Ms[j]
+        Cs_sum = Cs_sum + Cs[j]
+        Bs_sum = Bs_sum + Bcs[j]
+    mo = mo / k
+    Cn = C + Cs_sum / (k * k)
+    Cb = Bc + Bs_sum / (k * k)
+    d = m - mo
+    return d, chi2(d, Cn + Cb), mo, Cn, Cb
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel for the types the filter calls them with."""
     n = 11
@@ -381,6 +485,11 @@ def warm_up() -> None:
         capped_d2(HPHt, np.eye(3), np.ones(3), np.zeros(3), nu)
         mahalanobis(HPHt + np.eye(3), nu)
     pose_before(x2, 0.01, 0.1)
+    e3, z3 = np.eye(3), np.zeros((3, 3))
+    for view, first in ((True, True), (True, False), (False, True), (False, False)):
+        drift_accumulate(pose, e3, z3, e3, e3, e3, 100.0, 0.5, view, first, 0.9, e3, e3, pose, z3, 1.0, 1.0,
+                         first, e3, e3, 0.8, e3, 0.5)
+    drift_deviation(pose, e3, e3, np.zeros((2, 3)), np.zeros((2, 3, 3)), np.zeros((2, 3, 3)))
 
 
 __all__ = ["Q_LEN", "capped_d2", "fix_model", "imu_step", "imu_update", "kalman", "mahalanobis", "pose_before",

@@ -90,12 +90,15 @@ from typing import NamedTuple
 
 import numpy as np
 
+from toptag.fusion import kernels
 from toptag.units import s_from_ns
 
 CALIBRATE_CHECK = "toptag calibrate check --camera CAM.json --points POINTS.json IMAGE"
 # With a view-dependent error of share s (of each fix's sigma), the rest of its variance, (1 - s²) R, is white;
 # at least this share of R is kept white, so that S stays well conditioned whatever s is.
 MAX_VIEW_SHARE_OF_VARIANCE = 0.9
+_Z33 = np.zeros((3, 3))  # stand-ins for the compiled arithmetic's absent arguments (never written)
+_Z3 = np.zeros(3)
 
 
 class RsuRecord(NamedTuple):
@@ -138,6 +141,9 @@ class RsuRecord(NamedTuple):
     Q: np.ndarray | None = None
     H: np.ndarray | None = None
     view_xy: tuple[float, float] | None = None
+    # DriftRule.bias_cov of this record, kept by accumulate (None: computed when asked): every decision
+    # asks for every RSU's, each the inverse of a 3x3 (~13 per fix with four RSUs).
+    bias_c: np.ndarray | None = None
 
     @property
     def flagged(self) -> bool:
@@ -155,7 +161,7 @@ class RsuRecord(NamedTuple):
         keep_past=False: the earlier passes' deviations go too, and the long-run one."""
         past, baseline = (self.past, self.baseline) if keep_past else (None, None)
         rec = self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None, Bs=None,
-                            current=None, past=past, baseline=baseline, change=None, change_stat=0.0)
+                            bias_c=None, current=None, past=past, baseline=baseline, change=None, change_stat=0.0)
         return rec if self.flagged else rec._replace(deviation=None, deviation_stat=0.0, others_mean=None)
 
     def recalibrated(self, calib_id: str | None) -> RsuRecord:
@@ -238,35 +244,32 @@ class DriftRule:
         shares with every other fix of its RSU, B that share (its constant bias: the calibration's,
         the time offset's; None: none); R the fix's own noise covariance and xy where the bus was (for
         its view-dependent error: view_bias_share)."""
-        B = np.zeros((3, 3)) if B is None else B
-        d2 = _chi2(nu, S + self._floor)
-        if d2 > self.clip_d2:
-            nu = nu * math.sqrt(self.clip_d2 / d2)
+        # The arithmetic is compiled (toptag.fusion.kernels.drift_accumulate): as numpy it was ~25 small-array
+        # calls per fix, re-run for every fix after a late one, the largest part of the bus agent's fix update.
+        # The fix's noise is its view-dependent part plus the rest, white: S keeps (1 - s²) R of it, and the
+        # view errors u of two fixes correlate as exp(-distance driven between them / view_corr_m): Q = sum_jk
+        # X_j rho_jk X_k' (X = S^-1 R^1/2), kept with H = sum_k rho(now, k) X_k (both faded as b is).
         view = self.view_bias_share > 0 and R is not None and xy is not None
-        if view:  # the fix's noise is its view-dependent part (below) plus the rest, white
-            S = S - min(self.view_bias_share ** 2, MAX_VIEW_SHARE_OF_VARIANCE) * R
-        Si = np.linalg.inv(S)
-        X = Si @ _sqrtm(R) if view else None
-        if rec.A is None:
-            A, A2, b, sw, sw2, Bs = Si, Si, Si @ nu, 1.0, 1.0, B
-        else:
-            w = math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
-            A, A2, b = w * rec.A + Si, (w * w) * rec.A2 + Si, w * rec.b + Si @ nu
-            sw, sw2, Bs = w * rec.sums[0] + 1.0, w * w * rec.sums[1] + 1.0, w * rec.Bs + B
-        Q = H = None
-        if view and (rec.A is None or rec.H is None):
-            Q, H = X @ X.T, X
-        elif view:
-            # The view errors u of two fixes correlate as exp(-distance driven between them / view_corr_m):
-            # Q = sum_jk X_j rho_jk X_k', kept with H = sum_k rho(now, k) X_k (both faded as b is).
+        first = rec.A is None
+        w = 0.0 if first else math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
+        view_first = first or rec.H is None
+        rho = 0.0
+        if view and not view_first:
             gap = 0.0 if rec.view_xy is None else math.hypot(xy[0] - rec.view_xy[0], xy[1] - rec.view_xy[1])
-            Hp = (w * math.exp(-gap / self.view_corr_m)) * rec.H
-            cross = X @ Hp.T
-            Q, H = (w * w) * rec.Q + X @ X.T + cross + cross.T, Hp + X
-        Ai = np.linalg.inv(A)
-        return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=_chi2(b, A2), n_eff=sw * sw / sw2, sums=(sw, sw2),
-                            m=Ai @ b, C=Ai @ A2 @ Ai, Bs=Bs, Q=Q, H=H,
-                            view_xy=(float(xy[0]), float(xy[1])) if view else rec.view_xy)
+            rho = w * math.exp(-gap / self.view_corr_m)
+        A, A2, b, Bs, sw, sw2, Q, H, stat, m, C, bias_c, ok = kernels.drift_accumulate(
+            np.asarray(nu, dtype=float), np.asarray(S, dtype=float), _Z33 if B is None else np.asarray(B, dtype=float),
+            _Z33 if R is None else np.asarray(R, dtype=float), _sqrtm(R) if view else _Z33, self._floor,
+            float(self.clip_d2),
+            min(self.view_bias_share ** 2, MAX_VIEW_SHARE_OF_VARIANCE), view, first, w,
+            *((_Z33, _Z33, _Z3, _Z33, 0.0, 0.0) if first else (rec.A, rec.A2, rec.b, rec.Bs, *rec.sums)),
+            view_first, _Z33 if view_first else rec.Q, _Z33 if view_first else rec.H, rho,
+            np.asarray(self.bias_floor, dtype=float), float(self.view_bias_share ** 2))
+        if not ok:
+            raise np.linalg.LinAlgError("singular innovation information in the drift detector")
+        return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=stat, n_eff=sw * sw / sw2, sums=(sw, sw2),
+                            m=m, C=C, Bs=Bs, Q=Q if view else None, H=H if view else None,
+                            view_xy=(float(xy[0]), float(xy[1])) if view else rec.view_xy, bias_c=bias_c)
 
     def carry(self, rec: RsuRecord) -> RsuRecord:
         """The record with its deviation from the others in this filter added to the earlier passes'
@@ -284,10 +287,15 @@ class DriftRule:
         the window) plus the floor, plus what its fixes' view-dependent errors leave in its mean
         innovation (view_bias_share² A^-1 Q A^-1: fixes taken from one place, e.g. of a standing bus,
         share theirs and do not average it down)."""
-        B = self.bias_floor if rec.Bs is None else rec.Bs / rec.sums[0] + self.bias_floor
-        if rec.Q is not None and rec.A is not None:
-            Ai = np.linalg.inv(rec.A)
-            B = B + self.view_bias_share ** 2 * (Ai @ rec.Q @ Ai)
+        if rec.bias_c is not None:
+            return rec.bias_c
+        return self._bias_cov(rec.Bs, rec.sums[0], rec.Q, None if rec.A is None else np.linalg.inv(rec.A))
+
+    def _bias_cov(self, Bs: np.ndarray | None, sw: float, Q: np.ndarray | None, Ai: np.ndarray | None) -> np.ndarray:
+        """bias_cov from a record's sums (Ai: the inverse of its A)."""
+        B = self.bias_floor if Bs is None else Bs / sw + self.bias_floor
+        if Q is not None and Ai is not None:
+            B = B + self.view_bias_share ** 2 * (Ai @ Q @ Ai)
         return B
 
     @property
@@ -309,11 +317,9 @@ class DriftRule:
         """(d, T_d, the others' mean, n, (d, noise covariance, n) in this filter alone) of one record
         against others: d and n with the earlier passes' deviations added (when kept), T_d against the
         noise and the biases of both."""
-        k = len(others)
-        mo = sum(o.m for o in others) / k
-        Cn = rec.C + sum(o.C for o in others) / (k * k)
-        Cb = self.bias_cov(rec) + sum(self.bias_cov(o) for o in others) / (k * k)
-        d = rec.m - mo
+        d, T_d, mo, Cn, Cb = kernels.drift_deviation(  # compiled: this runs 1 + k times per decision
+            rec.m, rec.C, self.bias_cov(rec), np.array([o.m for o in others]), np.array([o.C for o in others]),
+            np.array([self.bias_cov(o) for o in others]))
         current = (d, Cn, rec.n_eff)
         n = rec.n_eff
         if rec.past is not None and self.past_window_s > 0:
@@ -324,7 +330,8 @@ class DriftRule:
                 pass
             else:
                 d = Cn @ Id
-        return d, _chi2(d, Cn + Cb), mo, n, current
+                T_d = _chi2(d, Cn + Cb)
+        return d, T_d, mo, n, current
 
     def _change(self, rec: RsuRecord, current: tuple, others: list[RsuRecord], t_ns: int) -> tuple | None:
         """(Delta, T_c, its covariance): this pass's deviation from the others minus its long-run one, and
