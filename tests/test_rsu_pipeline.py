@@ -573,3 +573,82 @@ def test_a_bus_whose_tags_would_be_too_small_to_decode_is_not_searched_for(bus_p
     p.coarse_position(bus.id, t_ns, every.x0 + CELL_M * ix, every.y0 + CELL_M * iy, 0.1)
     assert p.process(img, t_ns).acquired
 
+
+
+def test_a_near_buses_tracking_crops_are_decimated_and_fix_it_as_at_full_resolution():
+    camera, bus = rsu_camera("sw", 960, 720), bundled_vehicle("bus_double")
+    pose = (-4.76, -4.76, 0.0, bus.height)  # 6 m before the camera: tags of 95 and 122 px
+    rng = np.random.default_rng(4)
+    frames = [render(camera, [PlacedVehicle(bus, *pose)], rng=rng) for _ in range(4)]
+    runs = {}
+    # every crop at full resolution, no contrast floor; the defaults (decimated, floored)
+    for name, settings in (("full", PipelineSettings(track_decimate_side_px=0, track_min_contrast=0)),
+                           ("default", PipelineSettings())):
+        p = RsuPipeline(camera, settings)
+        p.add_vehicle(bus)
+        out = [p.process(img, i * 100_000_000, i).vehicles[bus.id] for i, img in enumerate(frames)]
+        assert [vr.mode for vr in out] == ["acquired", "tracked", "tracked", "tracked"]
+        assert all(vr.fix is not None and len(vr.observations) == 2 for vr in out)
+        jobs = p._tracking_jobs(bus, p.tracks[bus.id], 4 * 100_000_000)
+        runs[name] = out, sorted(j.decimate for j in jobs)
+    assert runs["full"][1] == [1.0, 1.0] and runs["default"][1] == [2.0, 3.0]
+    for full, decimated in zip(runs["full"][0][1:], runs["default"][0][1:]):
+        assert np.hypot(full.fix.x - decimated.fix.x, full.fix.y - decimated.fix.y) < 0.01
+        assert abs(full.solution.yaw - decimated.solution.yaw) < 0.005
+
+
+def test_overlapping_crops_merge_at_their_finest_level_and_a_tag_found_twice_is_kept_from_its_own():
+    from toptag.detection import RawDetection
+    from toptag.rsu.pipeline import DetectJob, _merge_jobs, _own_crop_first
+    from toptag.rsu.regions import Box
+
+    def job(box, decimate, upsample, tag):
+        return DetectJob(Box(*box), decimate, upsample, thorough=False, expect=frozenset({("tag36h11", tag)}))
+
+    near_a, near_b = job((0, 0, 300, 300), 3.0, 1, 1), job((250, 0, 500, 300), 2.0, 1, 2)
+    far = job((280, 280, 340, 330), 1.0, 2, 9)  # a far tag's crop, enlarged
+    alone = job((600, 0, 700, 100), 2.0, 1, 4)
+    merged = _merge_jobs([near_a, alone, near_b])
+    assert {(j.box.x0, j.box.y0, j.box.x1, j.box.y1, j.decimate, j.upsample, j.expect) for j in merged} == {
+        (0, 0, 500, 300, 2.0, 1, frozenset({("tag36h11", 1), ("tag36h11", 2)})),
+        (600, 0, 700, 100, 2.0, 1, frozenset({("tag36h11", 4)}))}
+    merged = _merge_jobs([near_a, far, near_b])
+    assert [(j.box.x0, j.box.y0, j.box.x1, j.box.y1, j.decimate, j.upsample) for j in merged] == [
+        (0, 0, 500, 330, 1.0, 2)]
+
+    def det(tag, margin):
+        return RawDetection("tag36h11", tag, np.zeros((4, 2)), 0, margin)
+
+    # two crops searched apart (a steady bus's first, then another's overlapping it)
+    kept = _own_crop_first([near_a, far], [[det(1, 80.0), det(9, 60.0), det(5, 40.0)], [det(9, 30.0)]])
+    # tag 9 from its own crop although the other decoded it more confidently; tag 5, made a crop by
+    # nobody (a bus not in session), is kept from where it was found
+    assert sorted((d.tag_id, d.decision_margin) for d in kept) == [(1, 80.0), (5, 40.0), (9, 30.0)]
+
+
+def test_a_steadily_tracked_buses_fix_does_not_wait_for_another_buses_wide_crops(bus_pass):
+    """The crops of a bus tracked from frame to frame are searched and its fix handed over before those of
+    a bus only hinted (crops as wide as its hint is uncertain, up to the whole frame)."""
+    camera, bus, frames = bus_pass
+    other = bundled_vehicle("bus_second")
+    p = RsuPipeline(camera, PipelineSettings())
+    p.add_vehicle(bus)
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    for i in shown[:6]:
+        p.process(frames[i][1], frames[i][0])
+    assert p.tracks[bus.id].found and p.tracks[bus.id].velocity is not None
+    t_ns, img, truth, _ = frames[shown[6]]
+    p.add_vehicle(other)
+    p.hint(other.id, t_ns, *truth, source="rsu-ne")  # said to be where the tracked bus is: crops there too
+    events = []
+    pool = p._pool()
+    run = pool.run
+
+    def spy(gray, jobs):
+        events.append("crops")
+        return run(gray, jobs)
+
+    pool.run = spy
+    res = p.process(img, t_ns, on_vehicle=lambda vr: events.append((vr.vehicle_id, vr.mode, vr.fix is not None)))
+    assert events == ["crops", (bus.id, "tracked", True), "crops", (other.id, "searching", False)]
+    assert res.vehicles[other.id].regions > 0

@@ -75,6 +75,18 @@ class PipelineSettings(BaseModel):
     # Tags whose shortest side is below this many pixels are detected in a 2x enlarged image: at 20-25 m
     # on 960x720 a cell is 1-2 px tall and decoding fails without it.
     upsample_below_px: float = 24.0
+    # Tracking crops of tags whose shortest side is at least k times this many pixels (k >= 2) run the
+    # quad search decimated k times (at most track_max_decimate), edges refined and bits decoded at full
+    # resolution: a bus near the camera made crops of up to the whole frame, 50-100 ms of CPU per frame
+    # and the demo's slowest tracked frames (docs/architecture.md). 0: tracking crops are never decimated.
+    track_decimate_side_px: float = Field(default=32.0, ge=0.0)
+    track_max_decimate: int = Field(default=4, ge=1)
+    # acquire_min_contrast's floor in tracking (and hinted) crops too: a velocity-less track's crops (the
+    # first frames after an acquisition) grow by the top speed over the frames since, to the whole frame
+    # after a slow search, and their flat road costs what a search's does: at full resolution on the
+    # simulator's frames, 25-28 ms against 10-11 ms of CPU for the same corners (the contrast floor only
+    # leaves regions out of the quad search; edges are refined on the image). 0: the library's floor.
+    track_min_contrast: float = Field(default=0.2, ge=0.0, le=1.0)
     # ... in acquisition's search (None: upsample_below_px). A find is confirmed at full resolution, enlarged
     # by upsample_below_px, so this changes what a search finds, not the fix. On the demo's renderer and
     # image model (`python -m sim.studies.acquire_range`, 313 tags at 960x720), 16 decoded 226 tags where
@@ -187,7 +199,8 @@ class _Search:
         return sum(j.cost for j in self.jobs)
 
 
-# The contrast floor of acquisition's decimated bands (PipelineSettings.acquire_min_contrast) in grey
+# The contrast floor of acquisition's decimated bands and of tracking's crops (PipelineSettings.
+# acquire_min_contrast, track_min_contrast) in grey
 # levels: at least AprilTag's own default; at most 20, a sixth of a default-lit tag's contrast (a bright
 # or overexposed frame does not raise it further).
 APRILTAG_MIN_CONTRAST, ACQUIRE_MAX_CONTRAST = 5, 20
@@ -413,29 +426,45 @@ class RsuPipeline:
             if on_vehicle is not None:
                 on_vehicle(vr)
 
-        # Tracked and hinted buses: crops around where each must be.
-        jobs: list[DetectJob] = []
-        regions_of: dict[str, int] = {}
+        # Tracked and hinted buses: crops around where each must be. Those of buses tracked from frame to
+        # frame (a velocity, no miss: crops of about their tags' size) are searched and solved first, so
+        # that their fixes never wait for the wide crops of a bus found on one frame only, missed, or hinted
+        # (up to the whole frame: 50-150 ms of CPU in the demo, docs/architecture.md).
+        jobs_of: dict[str, list[DetectJob]] = {}
         for vid in tracked + hinted:
             track, extra = (self.tracks[vid], 0.0) if vid in tracked else hints[vid]
-            vjobs = self._tracking_jobs(self.vehicles[vid], track, t_ns, extra)
-            regions_of[vid] = len(vjobs)
-            jobs += vjobs
-        jobs = _merge_jobs(jobs)
-        raw = [d for found in (pool.run(image(), jobs) if jobs else []) for d in found]
-        result.pixels_searched = sum(j.box.area for j in jobs)
-        t1 = time.perf_counter()
-        result.detect_ms = (t1 - t0) * 1e3
+            jobs_of[vid] = self._tracking_jobs(self.vehicles[vid], track, t_ns, extra)
+        regions_of = {vid: len(vjobs) for vid, vjobs in jobs_of.items()}
+        steady = [vid for vid in tracked if self.tracks[vid].velocity is not None and self.tracks[vid].misses == 0]
+        all_jobs: list[DetectJob] = []
+        found: list[list[RawDetection]] = []
+        raw: list[RawDetection] = []
+        t1 = t0  # the start of a stage's detection (the first's includes the whereabouts above)
+        for stage in (steady, [vid for vid in tracked + hinted if vid not in steady]):
+            if not stage:
+                continue
+            jobs = _merge_jobs([j for vid in stage for j in jobs_of[vid]])
+            jobs = self._contrast_floor(image(), jobs, self.settings.track_min_contrast, True) if jobs else []
+            if jobs:
+                all_jobs += jobs
+                found += pool.run(image(), jobs)
+                raw = _own_crop_first(all_jobs, found)
+            result.pixels_searched += sum(j.box.area for j in jobs)
+            t2 = time.perf_counter()
+            result.detect_ms += (t2 - t1) * 1e3
+            observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
+            for vid in stage:
+                mode = "tracked" if vid in tracked else ("hinted" if regions_of[vid] else "out_of_view")
+                vr = self._conclude(vid, observed.get(vid, []), mode, t_ns, seq, regions_of[vid])
+                if vid in hinted and isinstance(hints[vid][0], ReportedPosition):
+                    if vr.fix is None and regions_of[vid] > 0:
+                        self._report_misses[vid] = self._report_misses.get(vid, 0) + 1
+                done(vr)
+            t1 = time.perf_counter()
+            result.solve_ms += (t1 - t2) * 1e3
         observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
-        for vid in tracked + hinted:
-            mode = "tracked" if vid in tracked else ("hinted" if regions_of[vid] else "out_of_view")
-            vr = self._conclude(vid, observed.get(vid, []), mode, t_ns, seq, regions_of[vid])
-            if vid in hinted and isinstance(hints[vid][0], ReportedPosition):
-                if vr.fix is None and regions_of[vid] > 0:
-                    self._report_misses[vid] = self._report_misses.get(vid, 0) + 1
-            done(vr)
         t2 = time.perf_counter()
-        result.solve_ms = (t2 - t1) * 1e3
+        result.detect_ms += (t2 - t1) * 1e3
 
         # The others: searched for where they can be, if a search is due.
         due = bool(unfound) and self._search is None and self._acquisition_due(t_ns, bool(tracked))
@@ -444,7 +473,7 @@ class RsuPipeline:
             self._last_acquire_ns = t_ns
             tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound]) if where else None
             jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], tiles)
-            jobs = self._contrast_floor(image(), jobs) if jobs else []
+            jobs = self._contrast_floor(image(), jobs, self.settings.acquire_min_contrast) if jobs else []
             wanted = frozenset((self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids)
             search = _Search(t_ns, seq, image() if jobs else None, list(unfound), tiles,
                              sorted(jobs, key=lambda j: -j.cost), pool, wanted)
@@ -632,15 +661,16 @@ class RsuPipeline:
                 jobs.append(DetectJob(box, b.decimate, b.upsample, thorough))
         return jobs
 
-    def _contrast_floor(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[DetectJob]:
-        """Acquisition's decimated jobs with the contrast a region needs to be searched
-        (PipelineSettings.acquire_min_contrast, of the frame's mean grey level on a sparse grid)."""
-        ratio = self.settings.acquire_min_contrast
-        if not ratio or all(j.decimate == 1.0 for j in jobs):
+    def _contrast_floor(self, gray: np.ndarray, jobs: list[DetectJob], ratio: float,
+                        every_job: bool = False) -> list[DetectJob]:
+        """The jobs with the contrast a region needs to be searched (ratio of the frame's mean grey level on
+        a sparse grid: PipelineSettings.acquire_min_contrast, track_min_contrast): acquisition's decimated
+        jobs only (their finds are confirmed at full resolution without it), or every_job."""
+        if not ratio or all(j.decimate == 1.0 and not every_job for j in jobs):
             return jobs
         floor = round(ratio * float(gray[::16, ::16].mean()))
         floor = int(min(ACQUIRE_MAX_CONTRAST, max(floor, APRILTAG_MIN_CONTRAST)))
-        return [replace(j, min_contrast=floor) if j.decimate != 1.0 else j for j in jobs]
+        return [replace(j, min_contrast=floor) if j.decimate != 1.0 or every_job else j for j in jobs]
 
     def _hint_at(self, vid: str, t_ns: int):
         """(what predicts the unfound vehicle's pose, extra margin) to crop for its tags: another RSU's
@@ -667,12 +697,19 @@ class RsuPipeline:
                              p.z_margin, self.settings.crop_pad_px)
             if box is not None:
                 corners = vehicle_to_world(vehicle.tag_corners(tid), p.x, p.y, p.yaw, p.z)
-                jobs.append(DetectJob(box, 1.0, self._upsample_for(projected_side_px(self.camera, corners)),
-                                      thorough=False))
+                side = projected_side_px(self.camera, corners)
+                jobs.append(DetectJob(box, self._decimate_for(side), self._upsample_for(side), thorough=False,
+                                      expect=frozenset({(vehicle.family, tid)})))
         return jobs
 
     def _upsample_for(self, side_px: float) -> int:
         return 2 if side_px < self.settings.upsample_below_px else 1
+
+    def _decimate_for(self, side_px: float) -> float:
+        s = self.settings
+        if not s.track_decimate_side_px:
+            return 1.0
+        return float(max(1, min(s.track_max_decimate, int(side_px // s.track_decimate_side_px))))
 
     def _confirm_full_resolution(self, gray, coarse: list[RawDetection], run) -> list[RawDetection]:
         """Re-detect each coarse find in a crop at full resolution: decimated quads lose corner accuracy.
@@ -685,21 +722,34 @@ class RsuPipeline:
                       min(self.camera.width, int(hi[0] + pad) + 1), min(self.camera.height, int(hi[1] + pad) + 1))
             side = float(np.linalg.norm(np.roll(d.corners, -1, axis=0) - d.corners, axis=1).min())
             jobs.append(DetectJob(box, 1.0, self._upsample_for(side), expect=frozenset({(d.family, d.tag_id)})))
-        return [d for found in run(gray, _merge_jobs(jobs)) for d in found]
+        jobs = _merge_jobs(jobs)
+        return _own_crop_first(jobs, run(gray, jobs))
 
 
 def _merge_jobs(jobs: list[DetectJob]) -> list[DetectJob]:
-    """Overlapping crops become one (so no tag is found twice or cut); the merged crop is enlarged if
-    any of its parts needed it."""
-    merged = merge_boxes([j.box for j in jobs])
+    """Overlapping crops become one (so no tag is found twice or cut), at the finest level of its parts:
+    enlarged if any needed it, decimated only as much as the least decimated. (Crops of two levels kept
+    apart lost 1.8 % of the demo's fixes, `toptag bench rsu --scenario`: a tag just above
+    upsample_below_px decodes more often in a neighbour's enlarged crop.)"""
     out = []
-    for box in merged:
+    for box in merge_boxes([j.box for j in jobs]):
         parts = [j for j in jobs if box.overlaps(j.box)]
         up = max((j.upsample for j in parts), default=1)
+        decimate = min((j.decimate for j in parts), default=1.0)
         known = [j.expect for j in parts]
         expect = frozenset().union(*known) if known and None not in known else None
-        out.append(DetectJob(box, 1.0, up, thorough=any(j.thorough for j in parts) or not parts, expect=expect))
+        out.append(DetectJob(box, decimate, up, thorough=any(j.thorough for j in parts) or not parts,
+                             expect=expect))
     return out
+
+
+def _own_crop_first(jobs: list[DetectJob], found: list[list[RawDetection]]) -> list[RawDetection]:
+    """The detections of every job (found: per job), a tag found both in a crop made for it (its expect)
+    and in another's (a steady bus's and another bus's, searched apart) keeping only the former."""
+    own = {(d.family, d.tag_id) for j, ds in zip(jobs, found) if j.expect for d in ds
+           if (d.family, d.tag_id) in j.expect}
+    return [d for j, ds in zip(jobs, found) for d in ds
+            if (d.family, d.tag_id) not in own or (j.expect is not None and (d.family, d.tag_id) in j.expect)]
 
 
 def _dedupe(raw: list[RawDetection]) -> list[RawDetection]:
