@@ -16,7 +16,7 @@ import threading
 import time
 from pathlib import Path
 
-from protocol.transport.runner import stop_signals
+from protocol.transport.runner import freeze_start_up, stop_signals
 from services.processes import TOPTAG, ProcessGroup, cpu_seconds, free_port
 from toptag.progress import Progress
 
@@ -147,6 +147,7 @@ def _run(args: argparse.Namespace, scenario_path: Path, scenario, stop: threadin
     else:
         sim = group.start("sim", TOPTAG + ["sim", "run", "--scenario", str(scenario_path)] + client)
 
+    freeze_start_up()  # the monitor in this process is a service like the others
     t_start = time.monotonic()
     cpu = CpuWindow(group, sim)
     # With --replay the demo ends with the replay (its own --duration); else --duration s after the

@@ -8,14 +8,16 @@ SIGINT/SIGTERM, a clean close, and the exit code.
   the Zenoh options the command line left unset;
 - load() reads and checks the inputs (a bad file raises toptag.errors.InputError: one line, exit 2);
 - the session opens from the Zenoh options (SetupError: one line, exit 1);
-- build(session, inputs) makes the service; SIGINT/SIGTERM call its stop(); run(duration) runs it;
-  close() and the session's close follow, whatever happened; exit 0.
+- build(session, inputs) makes the service; what start-up made is then left out of the garbage
+  collector's full collections (`freeze_start_up`); SIGINT/SIGTERM call its stop(); run(duration) runs
+  it; close() and the session's close follow, whatever happened; exit 0.
 Exit codes come from toptag.errors.exit_code: the same mapping as the CLI's. Here, at the protocol
 layer, so that the simulator (sim) and the services (services) share it."""
 from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import logging
 import signal
 import sys
@@ -121,6 +123,7 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
             return report(prog, InputError(str(e)))
         try:
             service = build(session, inputs)
+            freeze_start_up()
             if signals:
                 service.stop()
             log.info("%s ready", describe(inputs))
@@ -137,6 +140,16 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
             session.close()
             log.info("%s stopped", describe(inputs))
         return EXIT_OK
+
+
+def freeze_start_up() -> None:
+    """Leave what start-up made (modules, numba's kernels, pydantic's models, Zenoh's objects, a service's
+    caches: 10^5 objects and more) out of the garbage collector's full collections from now on. Each full
+    collection otherwise scans them all holding the GIL: in the demo's RSUs once or twice a minute, a
+    frame's processing stopped 0.1-1.8 s (docs/architecture.md, "The RSU's processing tail"). What the
+    service makes as it runs is still collected."""
+    gc.collect()
+    gc.freeze()
 
 
 @contextlib.contextmanager

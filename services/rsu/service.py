@@ -20,7 +20,6 @@ keys.rsu_diagnosis: its time offset, and whether its camera is flagged for drift
 from __future__ import annotations
 
 import argparse
-import gc
 import logging
 import os
 import queue
@@ -392,7 +391,6 @@ class RsuService:
 
     # ---- loop ---------------------------------------------------------------------------------
     def run(self, duration: float | None = None, status_period: float = 1.0) -> None:
-        _freeze_start_up()
         t_end = None if duration is None else time.monotonic() + duration
         next_status = time.monotonic() + status_period
         last = time.monotonic()
@@ -441,16 +439,6 @@ class RsuService:
         self._status_pub.close()
         self._detections_pub.close()
         self.clock.close()
-
-
-def _freeze_start_up() -> None:
-    """Leave what start-up made (modules, numba's kernels, pydantic's models, Zenoh's objects: hundreds of
-    thousands of objects) out of the garbage collector's full collections from now on. Each full
-    collection otherwise scans them all while holding the GIL: once or twice a minute, a frame's
-    processing stopped 0.1-1.8 s (`toptag bench demo`, docs/architecture.md); the objects made per frame
-    are still collected."""
-    gc.collect()
-    gc.freeze()
 
 
 def _lower_priority(nice: int) -> None:
