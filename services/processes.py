@@ -35,6 +35,36 @@ def cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / _TICKS_PER_S  # utime, stime (fields 14 and 15)
 
 
+def parent_pids() -> dict[int, int]:
+    """{pid: parent pid} of every process now running (Linux /proc)."""
+    out = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat", "rb") as f:
+                    out[int(d)] = int(f.read().rsplit(b")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+    return out
+
+
+def tree_cpu_seconds(pid: int) -> float | None:
+    """cpu_seconds of `pid` and of its descendants running now (the simulator's render process is
+    its child): None when `pid` has exited."""
+    total = cpu_seconds(pid)
+    if total is None:
+        return None
+    parents = parent_pids()
+    tree, grew = {pid}, True
+    while grew:
+        new = {p for p, pp in parents.items() if pp in tree and p not in tree}
+        tree |= new
+        grew = bool(new)
+    for p in tree - {pid}:
+        total += cpu_seconds(p) or 0.0
+    return total
+
+
 def stop_process(popen: subprocess.Popen, sig: int = signal.SIGTERM, grace_s: float = 5.0) -> int | None:
     """Send `sig` to the process by its PID and wait; SIGKILL it if it outlives the grace. Its exit code."""
     if popen.poll() is None:
@@ -90,8 +120,8 @@ class ProcessGroup:
         return child
 
     def cpu_seconds(self) -> dict[str, float | None]:
-        """CPU seconds used so far by each child (None for one that has exited)."""
-        return {c.name: cpu_seconds(c.pid) for c in self.children}
+        """CPU seconds used so far by each child and its own children (None for one that has exited)."""
+        return {c.name: tree_cpu_seconds(c.pid) for c in self.children}
 
     def dead(self) -> list[Child]:
         return [c for c in self.children if not c.alive()]

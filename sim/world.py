@@ -465,14 +465,18 @@ class World:
         jpeg = self.render_jpeg(r, exposure, self.actual_camera(r, exposure))
         return jpeg, tick_ns + int(round(f.clock_offset_ms * NS_PER_MS))
 
-    def warm_up(self) -> None:
-        """Build every camera's background cache and render once (call before the clock starts)."""
+    def warm_up(self, rsus: list[int | str] | None = None) -> None:
+        """Build the cameras' background caches and render once (call before the clock starts): every
+        camera's, or those of `rsus` only (what a render process of sim.live renders)."""
+        wanted = None if rsus is None else {self._index(r) for r in rsus}
         probe = []
         if self.buses:
             b = self.buses[0]
             probe = [PlacedVehicle(b.vehicle, float(self.center[0]), float(self.center[1]), 0.3, speed=5.0)]
         rng = np.random.default_rng(0)
         for r, cam in enumerate(self.cameras):
+            if wanted is not None and r not in wanted:
+                continue
             drift = self.faults[r].drift
             later = [self.actual_camera(r, self.t0_ns + ns_from_s(drift.at_s + drift.ramp_s))] if drift else []
             for c in [cam] + later:  # a stepped camera's cache too, so the step does not stall the loop

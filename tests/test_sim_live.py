@@ -2,8 +2,11 @@
 process publishing over real Zenoh sessions (peer, multicast scouting off, tcp/127.0.0.1:<free port>)."""
 from __future__ import annotations
 
+import functools
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -19,6 +22,7 @@ from sim.motion import bus_trajectory
 from sim.scenario import Scenario, bundled_scenario_path, leg_seed, load_scenario
 from sim.world import World
 from toptag.inputs import InputError
+from toptag.waiting import wait_until
 from toptag.units import NS_PER_S, ns_from_s
 
 DEMO = REPO / "toptag" / "data" / "demo"
@@ -381,14 +385,57 @@ def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launc
             assert np.hypot(m.x - s.x, m.y - s.y) < 10.0
 
 
+def _descendants(pid: int) -> set[int]:
+    from services.processes import parent_pids
+    parents = parent_pids()
+    tree = {pid}
+    while new := {p for p, pp in parents.items() if pp in tree} - tree:
+        tree |= new
+    return tree - {pid}
+
+
+def _gone(pid: int) -> bool:
+    """Exited (a zombie not yet reaped by whoever adopted it counts as gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].split()[0] == b"Z"
+    except OSError:
+        return True
+
+
+def _render_pids(out: str) -> list[int]:
+    return [int(p) for p in re.findall(r"pid (\d+)", re.search(r"render processes: (.*)", out).group(1))]
+
+
 @pytest.mark.integration
 def test_sim_run_stops_on_sigterm(tmp_path, launch, free_port):
-    data = _short_scenario(rsus=[str(DEMO / "rsu-sw.json")])
+    data = _short_scenario()
     proc = launch([*TOPTAG, "sim", "run", "--scenario", str(_write(tmp_path, data)),
                    "--listen", f"tcp/127.0.0.1:{free_port()}"], ready="sim running")
+    renderers = _render_pids(proc.output())
+    children = _descendants(proc.pid)
+    assert renderers and set(renderers) <= children
+    from services.processes import cpu_seconds, tree_cpu_seconds
+    theirs = sum(cpu_seconds(p) or 0 for p in renderers)  # read first: CPU seconds only grow
+    own = cpu_seconds(proc.pid)
+    assert tree_cpu_seconds(proc.pid) >= own + theirs > own  # what bench demo counts as the simulator's
     assert proc.stop(timeout=60) == 0  # SIGTERM: a clean exit, not the SIGKILL that follows a timeout
     out = proc.output()
     assert "received SIGTERM" in out and "sim stopped after" in out and "Traceback" not in out
+    wait_until(lambda: all(_gone(p) for p in children), 30, 0.05)  # multiprocessing's tracker sees EOF
+    assert [p for p in children if not _gone(p)] == []  # every render process (and helper) ended with it
+
+
+@pytest.mark.integration
+def test_sim_run_render_processes_die_with_the_simulator(tmp_path, launch, free_port):
+    proc = launch([*TOPTAG, "sim", "run", "--scenario", str(_write(tmp_path, _short_scenario())),
+                   "--listen", f"tcp/127.0.0.1:{free_port()}"], ready="sim running")
+    children = _descendants(proc.pid)
+    assert set(_render_pids(proc.output())) <= children
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.proc.wait(30)
+    wait_until(lambda: all(_gone(p) for p in children), 30, 0.05)
+    assert [p for p in children if not _gone(p)] == []
 
 
 @pytest.mark.integration
@@ -409,28 +456,35 @@ def test_sim_run_bad_scenario_exits_2_with_one_line(tmp_path, kind):
     assert r.stdout == ""
 
 
+class _SlowWorld(World):
+    """A world whose camera takes 250 ms per frame (module level: a render process unpickles it)."""
+
+    def render_jpeg(self, rsu, t_ns, camera=None):
+        time.sleep(0.25)
+        return b"\xff\xd8 not really a jpeg \xff\xd9"
+
+
+def _slow_world(path: str) -> World:
+    return _SlowWorld(load_scenario(path))
+
+
 @pytest.mark.integration
 def test_slow_rendering_skips_ticks_and_never_drifts(tmp_path, zenoh_session, free_port):
-    """run() in-process on a real session: with a 250 ms render at 10 fps, late ticks are skipped and
-    counted; the frames that go out keep their scheduled capture times."""
+    """run() in-process on a real session, its render process rendering in 250 ms at 10 fps: late ticks
+    are skipped and counted; the frames that go out keep their scheduled capture times."""
     from protocol import Frame, keys
     from protocol.transport import subscribe_messages
     from sim.live import run
 
-    data = _short_scenario(rsus=[str(DEMO / "rsu-sw.json")])
-    world = World(load_scenario(_write(tmp_path, data)))
+    path = _write(tmp_path, _short_scenario(rsus=[str(DEMO / "rsu-sw.json")]))
+    world = World(load_scenario(path))
     ep = f"tcp/127.0.0.1:{free_port()}"
     pub_side = zenoh_session("peer", listen=[ep])
     sub_side = zenoh_session("peer", connect=[ep])
     inbox = Inbox()
     sub = subscribe_messages(sub_side, keys.frame("rsu-sw"), Frame, inbox)
-
-    def slow_render(rsu, t_ns, camera=None):
-        time.sleep(0.25)
-        return b"\xff\xd8 not really a jpeg \xff\xd9"
-
-    world.render_jpeg = slow_render
-    stats = run(world, pub_side, threading.Event(), duration_s=2.0)
+    stats = run(world, pub_side, threading.Event(), duration_s=2.0,
+                make_world=functools.partial(_slow_world, str(path)))
     sub.close()
     published, skipped = stats.published["rsu-sw"], stats.skipped["rsu-sw"]
     # a render takes 2.5 frame periods: at least one tick is skipped for each frame rendered
@@ -439,3 +493,47 @@ def test_slow_rendering_skips_ticks_and_never_drifts(tmp_path, zenoh_session, fr
     for arrival, m in inbox.items:
         assert m.capture_time_ns == world.frame_time(0, m.seq)
         assert arrival > m.capture_time_ns  # sent after its tick, never ahead of it
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("count", [1, 2])
+def test_render_processes_render_the_frames_of_one_process_on_the_tick_grid(tmp_path, count):
+    """The render processes (real spawned processes; one for both RSUs, or one each) render the very frames
+    the World renders in this process (same seeds, same ticks, the scenario's faults per camera: a capture
+    latency, a clock offset, a turned camera), stamped on each RSU's tick grid; each RSU's frames and
+    skipped ranges cover every tick once, in order."""
+    from sim.live import START_LEAD_NS, RenderProcesses, world_from_file
+
+    faults = {"rsu-sw": {"capture_latency_ms": 30, "drift": {"yaw_deg": 0.5, "at_s": 0.3}},
+              "rsu-ne": {"clock_offset_ms": -12.5}}
+    path = str(_write(tmp_path, _short_scenario(faults=faults)))
+    world = world_from_file(path)
+    cams = RenderProcesses(functools.partial(world_from_file, path), world.rsu_ids, count)
+    assert len(cams.procs) == count
+    got = {r: [] for r in range(len(world.rsu_ids))}
+    try:
+        assert cams.wait_ready(threading.Event())
+        t0 = time.time_ns() + START_LEAD_NS
+        end = t0 + ns_from_s(1.5)
+        cams.begin(t0, end)
+        while time.time_ns() < end + NS_PER_S // 2:
+            for msg in cams.receive(0.1):
+                got[msg[1]].append(msg)
+        assert all(p.is_alive() for p in cams.procs)  # past the last tick, until told to stop
+    finally:
+        cams.close()
+    assert not any(p.is_alive() for p in cams.procs)
+    world.start(t0)
+    for r, msgs in got.items():
+        k = 0
+        for msg in msgs:
+            if msg[0] == "skip":  # a busy machine: ticks skipped, never rendered late
+                assert msg[2] == k and msg[3] > k
+                k = msg[3]
+                continue
+            _, _, seq, tick, stamp, jpeg, _ms, _cpu_ms, _done = msg
+            assert seq == k and tick == world.frame_time(r, seq)
+            assert stamp == tick + round(world.faults[r].clock_offset_ms * 1e6)
+            assert (jpeg, stamp) == world.capture(r, tick)
+            k += 1
+        assert k == world.frame_index_from(r, end), (world.rsu_ids[r], k)  # every tick before the end
