@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from sim.image_model import ImageModel
 from sim import render_kernels
+from sim.image_model import ImageModel
 from sim.patterns import grid_size, tag_cells
 from sim.raster import NOISE_BANK_EXTRA, CameraRaster, optics_reach, raster_for
 from toptag.camera import Camera

@@ -54,6 +54,13 @@ def _sample(lattice, ou, ov):
 
 
 @compiled
+def _grid_cell(Ht, x, y):
+    """(row, col), fractional, of the tag grid cell that the ray (x, y) meets, through the tag's homography."""
+    w = Ht[2, 0] * x + Ht[2, 1] * y + Ht[2, 2]
+    return (Ht[0, 0] * x + Ht[0, 1] * y + Ht[0, 2]) / w, (Ht[1, 0] * x + Ht[1, 1] * y + Ht[1, 2]) / w
+
+
+@compiled
 def _tag_level(xn, yn, base, tag_H, tag_n, tag_levels, tag_bounds, has_bounds):
     """The roof's grey level along the ray: the last tag whose printed grid it meets, else base."""
     out = base
@@ -62,10 +69,7 @@ def _tag_level(xn, yn, base, tag_H, tag_n, tag_levels, tag_bounds, has_bounds):
             b = tag_bounds[t]
             if not (xn >= b[0] and xn <= b[1] and yn >= b[2] and yn <= b[3]):
                 continue
-        Ht = tag_H[t]
-        w = Ht[2, 0] * xn + Ht[2, 1] * yn + Ht[2, 2]
-        r = (Ht[0, 0] * xn + Ht[0, 1] * yn + Ht[0, 2]) / w
-        c = (Ht[1, 0] * xn + Ht[1, 1] * yn + Ht[1, 2]) / w
+        r, c = _grid_cell(tag_H[t], xn, yn)
         n = tag_n[t]
         if r >= 0 and r < n and c >= 0 and c < n:
             out = tag_levels[t, int(r), int(c)]
@@ -193,10 +197,7 @@ def tag_cells(xn, yn, Ht, n, levels, roof, color):
     c = np.empty((h, wd))
     for i in range(h):
         for j in range(wd):
-            x, y = xn[i, j], yn[i, j]
-            w = Ht[2, 0] * x + Ht[2, 1] * y + Ht[2, 2]
-            r[i, j] = (Ht[0, 0] * x + Ht[0, 1] * y + Ht[0, 2]) / w
-            c[i, j] = (Ht[1, 0] * x + Ht[1, 1] * y + Ht[1, 2]) / w
+            r[i, j], c[i, j] = _grid_cell(Ht, xn[i, j], yn[i, j])
     edge = np.zeros((h, wd), np.bool_)
     for i in range(h):
         for j in range(wd):
