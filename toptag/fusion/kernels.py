@@ -295,15 +295,21 @@ def fix_model(x, P, pose, i, accel, j, L):
 
 
 @compiled
+def _quadratic_form(C, d):
+    """(d' C^-1 d, C invertible)."""
+    y, ok = solve_small(C, d)
+    s = 0.0
+    if ok:
+        for k in range(d.shape[0]):
+            s += d[k] * y[k]
+    return s, ok
+
+
+@compiled
 def mahalanobis(S, nu):
     """nu' S^-1 nu (NaN where S is singular)."""
-    y, ok = solve_small(S, nu)
-    if not ok:
-        return math.nan
-    d2 = 0.0
-    for k in range(nu.shape[0]):
-        d2 += nu[k] * y[k]
-    return d2
+    d2, ok = _quadratic_form(S, nu)
+    return d2 if ok else math.nan
 
 
 @compiled
@@ -390,13 +396,8 @@ def _matvec(A, v):
 @compiled
 def chi2(d, C):
     """d' C^-1 d (toptag.fusion.trust's test statistic; 0 where C is singular, as there)."""
-    y, ok = solve_small(C, d)
-    if not ok:
-        return 0.0
-    s = 0.0
-    for k in range(d.shape[0]):
-        s += d[k] * y[k]
-    return s
+    s, ok = _quadratic_form(C, d)
+    return s if ok else 0.0
 
 
 @compiled
