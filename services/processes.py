@@ -48,13 +48,13 @@ def parent_pids() -> dict[int, int]:
     return out
 
 
-def tree_cpu_seconds(pid: int) -> float | None:
+def tree_cpu_seconds(pid: int, parents: dict[int, int] | None = None) -> float | None:
     """cpu_seconds of `pid` and of its descendants running now (the simulator's render process is
-    its child): None when `pid` has exited."""
+    its child; parents: parent_pids(), when the caller has it already): None when `pid` has exited."""
     total = cpu_seconds(pid)
     if total is None:
         return None
-    parents = parent_pids()
+    parents = parent_pids() if parents is None else parents
     tree, grew = {pid}, True
     while grew:
         new = {p for p, pp in parents.items() if pp in tree and p not in tree}
@@ -121,7 +121,8 @@ class ProcessGroup:
 
     def cpu_seconds(self) -> dict[str, float | None]:
         """CPU seconds used so far by each child and its own children (None for one that has exited)."""
-        return {c.name: tree_cpu_seconds(c.pid) for c in self.children}
+        parents = parent_pids()  # one look at every process for all the children
+        return {c.name: tree_cpu_seconds(c.pid, parents) for c in self.children}
 
     def dead(self) -> list[Child]:
         return [c for c in self.children if not c.alive()]
