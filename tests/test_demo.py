@@ -30,7 +30,7 @@ def test_demo_runs_two_buses_through_four_rsus_and_reports(tmp_path):
                    for m in lines.values())
 
     try:
-        assert wait_until(lambda: localized() or demo.proc.poll() is not None, 400, 60), demo.stdout()[-3000:]
+        assert wait_until(lambda: localized() or demo.proc.poll() is not None, 400, 1), demo.stdout()[-3000:]
         assert demo.proc.poll() is None, demo.stdout()[-3000:] + demo.stderr()[-3000:]
     finally:
         code = demo.stop()
