@@ -21,8 +21,9 @@ Processes and honest timing: the frames are rendered in a render process (multip
 context: the simulator's Zenoh session and threads are never forked), which builds the same World from
 the scenario and renders every RSU's frames earliest tick first, each up to 5 s ahead of its tick
 (RENDER_AHEAD_NS; the same frames, seeds, faults and schedule as one process would render: the World
-draws each camera's noise from its own stream, in its frames' order), and hands the JPEG over a pipe to
-the simulator's process. Its publishing thread sends each frame at its tick (not before: nothing
+draws each camera's noise from its own stream, in its frames' order), as long as the frames not yet
+due hold less than RENDER_AHEAD_BYTES (64 MB: large frames are rendered less far ahead), and hands the
+JPEG over a pipe to the simulator's process. Its publishing thread sends each frame at its tick (not before: nothing
 downstream sees a frame before its capture time) along with the sensor samples (computed per bus in
 0.5 s windows ahead of their time). So the renderer's time is not counted as the camera's latency, no
 renderer holds the publishing process's GIL, and the frames of a bus crossing, expensive to render while
@@ -85,9 +86,11 @@ MAX_LATE_S = 0.05  # a tick rendered later than min(half a period, this) is skip
 # not wait for a renderer. Seconds, not a period: the renders are cheap on an empty road (~2 ms) and
 # expensive while buses cross (15-60 ms), when the RSUs want both cores too; rendered ahead in the quiet
 # seconds before, the frames are ready when the crossing comes (docs/architecture.md, "The simulator's
-# processes"). The simulator holds at most this much of frames (4 RSUs x 10 fps x 5 s x ~150 kB: ~30 MB).
+# processes"). At most RENDER_AHEAD_BYTES of frames wait for their tick: the demo's 4 RSUs x 10 fps x 5 s x
+# 150-220 kB are 30-45 MB, but 3200x2400 JPEGs of ~1.5 MB would be ~300 MB; the budget keeps those ~1 s ahead.
 START_LEAD_NS = 100_000_000  # the clock starts this long after the render processes are ready
 RENDER_AHEAD_NS = 5 * NS_PER_S
+RENDER_AHEAD_BYTES = 64 * 1024 * 1024
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -323,12 +326,16 @@ def render_process(conn, make_world: Callable[[], World], rsus: list[int], log_l
             conn.send(("error", f"{type(e).__name__}: {e}"))
 
 
-def _render_frames(world: World, rsus: list[int], conn, end_ns: int | None) -> None:
+def _render_frames(world: World, rsus: list[int], conn, end_ns: int | None,
+                   ahead_bytes: int = RENDER_AHEAD_BYTES) -> None:
     """The frames of RSUs `rsus`, earliest tick first (so that a busy moment makes the fewest frames
-    late), each rendered from RENDER_AHEAD_NS before its tick on and sent on `conn`; returns at "stop"
-    (or the end of the pipe) or once every next tick is at or after end_ns."""
+    late), each rendered from RENDER_AHEAD_NS before its tick on, while the frames sent and not yet due
+    hold less than `ahead_bytes`, and sent on `conn`; returns at "stop" (or the end of the pipe) or once
+    every next tick is at or after end_ns."""
     late_limit = {r: int(min(0.5 * NS_PER_S / world.fps[r], MAX_LATE_S * NS_PER_S)) for r in rsus}
     next_k = dict.fromkeys(rsus, 0)
+    waiting: deque[tuple[int, int]] = deque()  # (tick, JPEG bytes) of the frames sent, earliest tick first
+    waiting_bytes = 0
     while not conn.poll():  # anything from the simulator now is "stop" (or the end of the pipe)
         r = min(rsus, key=lambda i: world.frame_time(i, next_k[i]))
         k = next_k[r]
@@ -336,8 +343,12 @@ def _render_frames(world: World, rsus: list[int], conn, end_ns: int | None) -> N
         if end_ns is not None and t >= end_ns:
             return
         now = time.time_ns()
-        if t - RENDER_AHEAD_NS > now:
-            conn.poll((t - RENDER_AHEAD_NS - now) / NS_PER_S)
+        while waiting and waiting[0][0] <= now:
+            waiting_bytes -= waiting.popleft()[1]
+        full = bool(waiting) and waiting_bytes >= ahead_bytes
+        start_ns = max(t - RENDER_AHEAD_NS, waiting[0][0] if full else now)  # full: after the next frame goes out
+        if start_ns > now:
+            conn.poll((start_ns - now) / NS_PER_S)
             continue
         if now - t > late_limit[r]:
             next_k[r] = world.frame_index_from(r, now - late_limit[r] + 1)
@@ -347,6 +358,8 @@ def _render_frames(world: World, rsus: list[int], conn, end_ns: int | None) -> N
         jpeg, stamp = world.capture(r, t)
         conn.send(("frame", r, k, t, stamp, jpeg, (time.perf_counter() - c0) * 1e3,
                    (time.thread_time() - cpu0) * 1e3, time.time_ns()))
+        waiting.append((t, len(jpeg)))
+        waiting_bytes += len(jpeg)
         next_k[r] = k + 1
 
 

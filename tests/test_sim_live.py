@@ -537,3 +537,37 @@ def test_render_processes_render_the_frames_of_one_process_on_the_tick_grid(tmp_
             assert (jpeg, stamp) == world.capture(r, tick)
             k += 1
         assert k == world.frame_index_from(r, end), (world.rsu_ids[r], k)  # every tick before the end
+
+
+@pytest.mark.integration
+def test_frames_rendered_ahead_hold_at_most_the_byte_budget(tmp_path):
+    """The render loop (in a thread here, on a real pipe) renders ahead of the ticks only while the frames
+    sent and not yet due hold less than its byte budget: 3200x2400 JPEGs 5 s ahead would be ~300 MB."""
+    from multiprocessing import Pipe
+
+    from sim.live import START_LEAD_NS, _render_frames
+
+    path = _write(tmp_path, _short_scenario())
+    world, probe = World(load_scenario(path)), World(load_scenario(path))
+    rsus = list(range(len(world.rsu_ids)))
+    world.warm_up(rsus)
+    t0 = time.time_ns() + START_LEAD_NS
+    world.start(t0)
+    probe.start(t0)
+    budget = 3 * len(probe.capture(0, t0)[0])  # about three frames
+    ours, theirs = Pipe()
+    end = t0 + ns_from_s(1.0)
+    loop = threading.Thread(target=_render_frames, args=(world, rsus, theirs, end, budget))
+    loop.start()
+    frames = []
+    while loop.is_alive() or ours.poll():
+        if ours.poll(0.05):
+            msg = ours.recv()
+            if msg[0] == "frame":
+                frames.append(msg)
+    loop.join()
+    assert len(frames) >= 5
+    for i, (_, _, _, tick, _, jpeg, _, _, done_ns) in enumerate(frames):
+        not_due = sum(len(f[5]) for f in frames[:i + 1] if f[3] > done_ns)
+        assert not_due < budget + len(jpeg), (i, not_due, budget)
+    assert any(f[3] - f[8] > 0 for f in frames)  # it did render ahead of the ticks
