@@ -18,7 +18,8 @@ from toptag.waiting import wait_until
 
 REPO = Path(__file__).resolve().parents[1]
 SYSTEM_PYTHON = "/usr/bin/python3"
-pytestmark = pytest.mark.integration
+# One worker for the module: under pytest-xdist each worker would record the drive (~30 s) for itself.
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("streams")]
 
 
 def _gst_rtsp_available() -> str | None:

@@ -24,7 +24,8 @@ from toptag.progress import Progress
 from toptag.solvers import SIGMA_H_DEFAULT, Limits, position_crlb, solve
 from toptag.solvers.level import edge_whitener
 
-pytestmark = pytest.mark.integration
+# One worker for the module: under pytest-xdist each worker would run small_run (~30 s) for itself.
+pytestmark = [pytest.mark.integration, pytest.mark.xdist_group("study_paper")]
 
 SAMPLES = 16  # one per whole-metre bin, 5..20 m
 
