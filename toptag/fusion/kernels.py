@@ -395,7 +395,7 @@ def _matvec(A, v):
 
 @compiled
 def chi2(d, C):
-    """d' C^-1 d (toptag.fusion.trust's test statistic; 0 where C is singular, as there)."""
+    """d' C^-1 d, 0 where C is singular (the drift detector's test statistic, toptag.fusion.trust)."""
     s, ok = _quadratic_form(C, d)
     return s if ok else 0.0
 

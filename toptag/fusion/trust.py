@@ -208,13 +208,6 @@ def _sqrtm(R: np.ndarray) -> np.ndarray:
     return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
 
 
-def _chi2(d: np.ndarray, C: np.ndarray) -> float:
-    try:
-        return float(d @ np.linalg.solve(C, d))
-    except np.linalg.LinAlgError:
-        return 0.0
-
-
 @dataclass(frozen=True)
 class DriftRule:
     """The detector's thresholds (from FilterConfig)."""
@@ -330,7 +323,7 @@ class DriftRule:
                 pass
             else:
                 d = Cn @ Id
-                T_d = _chi2(d, Cn + Cb)
+                T_d = kernels.chi2(d, Cn + Cb)
         return d, T_d, mo, n, current
 
     def _change(self, rec: RsuRecord, current: tuple, others: list[RsuRecord], t_ns: int) -> tuple | None:
@@ -348,7 +341,7 @@ class DriftRule:
         Cb = self.bias_cov(rec) + sum(self.bias_cov(o) for o in others) / (k * k)
         delta = current[0] - base[0]
         C = current[1] + base[1] + self.change_bias_share ** 2 * Cb
-        return delta, _chi2(delta, C), C
+        return delta, kernels.chi2(delta, C), C
 
     def decide(self, records: dict[str, RsuRecord], rsu: str, t_ns: int,
                offset_sigma_s: float = 0.0) -> RsuRecord:
@@ -424,7 +417,7 @@ class DriftRule:
                 continue
             denom = float(share @ W_share)
             lam = 0.0 if denom <= 0 else min(1.0, max(0.0, -float(c[0] @ W_share) / denom))
-            if self.isolation_ratio * _chi2(c[0] + lam * share, c[2]) > change[1]:
+            if self.isolation_ratio * kernels.chi2(c[0] + lam * share, c[2]) > change[1]:
                 return False
         return True
 
