@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -123,6 +124,17 @@ class DemoRun:
         code = stop_process(self.proc, signal.SIGINT, grace_s=120)
         self._reader.join(10)
         return code
+
+    def run_until(self, shown: Callable[[], bool], timeout_s: float) -> str:
+        """Wait (looking every second) until `shown()` (what the live table shows), then Ctrl-C; asserts that
+        it was shown while the demo ran and that the demo exited 0; its stdout."""
+        try:
+            assert wait_until(lambda: shown() or self.proc.poll() is not None, timeout_s, 1), self.stdout()[-4000:]
+            assert self.proc.poll() is None, self.stdout()[-3000:] + self.stderr()[-3000:]
+        finally:
+            code = self.stop()
+        assert code == 0, self.stdout()[-3000:] + self.stderr()[-3000:]
+        return self.stdout()
 
 
 def clean_env(extra: dict | None = None) -> dict:

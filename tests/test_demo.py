@@ -10,8 +10,6 @@ import pytest
 
 from conftest import DemoRun, assert_fused_claims_hold
 
-from toptag.waiting import wait_until
-
 pytestmark = pytest.mark.system
 
 BUSES = ("bus-17", "bus-42")
@@ -29,13 +27,7 @@ def test_demo_runs_two_buses_through_four_rsus_and_reports(tmp_path):
         return all(m and int(m[-1][0]) >= ENOUGH_FIXES and any(status == "ok" for _, status in m)
                    for m in lines.values())
 
-    try:
-        assert wait_until(lambda: localized() or demo.proc.poll() is not None, 400, 1), demo.stdout()[-3000:]
-        assert demo.proc.poll() is None, demo.stdout()[-3000:] + demo.stderr()[-3000:]
-    finally:
-        code = demo.stop()
-    stdout = demo.stdout()
-    assert code == 0, stdout[-3000:] + demo.stderr()[-3000:]
+    stdout = demo.run_until(localized, 400)
     r = json.loads(report.read_text())
     assert set(r["rsus"]) == {"rsu-sw", "rsu-se", "rsu-ne", "rsu-nw"}
     assert all(v == 0 for v in r["exit_codes"].values()), r["exit_codes"]
