@@ -200,7 +200,8 @@ def test_handler_exception_does_not_kill_the_subscription(peer_pair, samples, ca
 def test_drained_receiver_delivers_what_waited_in_order_and_a_full_ring_drops_the_oldest(peer_pair, samples, caplog):
     """A pull receiver drained on the consumer's schedule (the bus agent's 50 Hz step): every valid
     message waiting, oldest first; a bad payload counted and skipped; a failing handler counted, logged and
-    the next message delivered; with drop_oldest a full channel keeps the newest instead of blocking."""
+    the next message delivered; with drop_oldest a full channel keeps the newest instead of blocking, and
+    the drain that finds it full counts it, counts what it dropped by seq and logs it once."""
     a, b = peer_pair
     imu = samples["Imu"]
     key = key_for(imu)
@@ -214,13 +215,14 @@ def test_drained_receiver_delivers_what_waited_in_order_and_a_full_ring_drops_th
     got = []
     assert wait_until(lambda: got.extend(sub.drain()) or len(got) >= 2, 60)
     assert [m.seq for m in got] == [1, 2] and counters.get("rejected", Imu) == 1
+    assert counters.get("full") == 0 and counters.get("dropped") == 0
     watcher = Inbox()  # a callback subscriber of the same session: when it has seq 12, so has the ring
     watch = subscribe_messages(b, key, Imu, watcher)
     assert wait_until(lambda: pub.matching_status.matching, 30)
     for seq in range(3, 13):  # 10 while nobody drains: the ring keeps the newest 4
         pub.put(encode(imu.model_copy(update={"seq": seq})))
     assert watcher.wait(10, 60)
-    caplog.set_level(logging.ERROR, logger="test.sub")
+    caplog.set_level(logging.WARNING, logger="test.sub")
     seen = []
 
     def handler(m):
@@ -230,8 +232,18 @@ def test_drained_receiver_delivers_what_waited_in_order_and_a_full_ring_drops_th
 
     assert wait_until(lambda: sub.deliver(handler) >= 0 and seen[-1:] == [12], 60)
     assert seen == sorted(seen) and seen[-4:] == [9, 10, 11, 12] and 3 not in seen  # the oldest dropped
+    assert counters.get("full", Imu) == 1 and counters.get("dropped", Imu) == 12 - 2 - len(seen)
+    full = [r.getMessage() for r in caplog.records if "was full" in r.getMessage()]
+    assert len(full) == 1 and f"{12 - 2 - len(seen)} by seq" in full[0], full
     assert counters.get("handler_error") == 1
     assert any("handler bug" in r.getMessage() for r in caplog.records)
+    for seq in range(13, 23):  # stalled again: counted again, not logged again (one line per 10 s)
+        pub.put(encode(imu.model_copy(update={"seq": seq})))
+    assert watcher.wait(20, 60)
+    assert wait_until(lambda: sub.deliver(handler) >= 0 and seen[-1:] == [22], 60)
+    assert seen[-4:] == [19, 20, 21, 22] and counters.get("full", Imu) == 2
+    assert counters.get("dropped", Imu) == 22 - 2 - len(seen)
+    assert sum("was full" in r.getMessage() for r in caplog.records) == 1
     sub.close()
     watch.close()
 

@@ -15,6 +15,8 @@ from protocol.transport.config import (
 )
 from protocol.transport.counters import (
     ACCEPTED,
+    DROPPED,
+    FULL,
     HANDLER_ERROR,
     IGNORED,
     MISSING,
@@ -39,7 +41,7 @@ from protocol.transport.sessions import query_sessions, serve_session
 from protocol.transport.subscribing import SafeSubscriber, latest_receiver, subscribe_messages
 
 __all__ = [
-    "ACCEPTED", "HANDLER_ERROR", "IGNORED", "MATCH_SETTLE_S", "MISSING", "QOS", "REJECTED", "SKIPPED",
+    "ACCEPTED", "DROPPED", "FULL", "HANDLER_ERROR", "IGNORED", "MATCH_SETTLE_S", "MISSING", "QOS", "REJECTED", "SKIPPED",
     "LivelinessWatcher", "LogLimiter", "MessageCounters", "MessagePublisher", "Qos", "SafeSubscriber",
     "ZenohSetupError", "add_zenoh_arguments", "config_summary", "declare_alive", "declare_publisher",
     "encoding_for", "latest_receiver", "open_session", "publish", "qos_for", "query_sessions",

@@ -9,6 +9,7 @@ from collections import defaultdict
 
 ACCEPTED, REJECTED, HANDLER_ERROR, IGNORED, SKIPPED = "accepted", "rejected", "handler_error", "ignored", "skipped"
 MISSING = "missing"
+DROPPED, FULL = "dropped", "full"
 
 
 class MessageCounters:
@@ -16,7 +17,9 @@ class MessageCounters:
 
     Events: accepted, rejected (bad payload), handler_error, ignored (DELETE samples), skipped (frames
     overwritten unseen in a latest-only receiver: the reader was busy), missing (gaps in a latest-only
-    receiver's sequence that it never received: the sender skipped them, or they were lost)."""
+    receiver's sequence that it never received: the sender skipped them, or they were lost), full (a
+    drop_oldest receiver found full when drained: it had dropped its oldest, or was about to), dropped (how
+    many it dropped, by the gap in the messages' ``seq`` where they carry one)."""
 
     def __init__(self):
         self._lock = threading.Lock()

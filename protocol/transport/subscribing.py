@@ -18,7 +18,9 @@ Facts this module relies on (eclipse-zenoh 1.10):
   many samples for one wake-up. The bus agent's IMU (100 Hz) and fixes, taken at its 50 Hz step: ~3.5 %
   of a core for its IMU-callback thread alone (`toptag bench bus`, docs/architecture.md).
 - A FifoChannel that is full blocks the Zenoh thread that fills it (every subscription of the session
-  stalls behind a stalled consumer); a RingChannel (``drop_oldest``) drops its oldest sample instead.
+  stalls behind a stalled consumer); a RingChannel (``drop_oldest``) drops its oldest sample instead, and
+  tells nobody: ``drain`` notices a ring it finds full (counted ``full``, one log line per 10 s) and counts
+  what it lost (``dropped``) by the gap in the messages' ``seq`` where they carry one (Imu).
 """
 from __future__ import annotations
 
@@ -35,6 +37,8 @@ from protocol.codec import ProtocolError
 from protocol.messages import Frame, Message
 from protocol.transport.counters import (
     ACCEPTED,
+    DROPPED,
+    FULL,
     HANDLER_ERROR,
     IGNORED,
     MISSING,
@@ -75,6 +79,8 @@ class SafeSubscriber(Generic[M]):
         self.latest_only = latest_only
         self._check_key = check_key
         self._limit = LogLimiter()
+        self._ring = capacity if drop_oldest and handler is None and not latest_only else 0
+        self._full_limit = LogLimiter(burst=1, window_s=10.0)
         self._last_seq: dict[str, int] = {}
         self._closed = threading.Event()
         self._worker: threading.Thread | None = None
@@ -121,11 +127,12 @@ class SafeSubscriber(Generic[M]):
             return sample, lost
 
     # -- decoding and accounting
-    def _decode(self, sample: zenoh.Sample, overwritten: int = 0) -> M | None:
+    def _decode(self, sample: zenoh.Sample, overwritten: int = 0, skey: str | None = None) -> M | None:
         if sample.kind == zenoh.SampleKind.DELETE:
             self.counters.inc(IGNORED, self._name, self.key)
             return None
-        skey = str(sample.key_expr)
+        if skey is None:
+            skey = str(sample.key_expr)
         try:
             msg = codec.decode(sample.payload, self.msg_type, key=skey if self._check_key else None)
         except ProtocolError as e:
@@ -194,10 +201,45 @@ class SafeSubscriber(Generic[M]):
         one; try_recv takes it)."""
         if self.latest_only:
             raise RuntimeError("a latest-only receiver holds one sample: use try_recv()")
-        out = []
-        while (msg := self.try_recv()) is not None:
-            out.append(msg)
+        if not self._ring:
+            out = []
+            while (msg := self.try_recv()) is not None:
+                out.append(msg)
+            return out
+        out, taken, first_seq, newest_seq = [], 0, {}, {}
+        while True:
+            try:
+                sample = self._channel.try_recv()
+            except Exception:
+                break
+            if sample is None:
+                break
+            taken += 1
+            skey = str(sample.key_expr)
+            msg = self._decode(sample, skey=skey)
+            if msg is not None:
+                out.append(msg)
+                seq = getattr(msg, "seq", None)
+                if type(seq) is int:
+                    first_seq.setdefault(skey, seq)
+                    newest_seq[skey] = seq
+        if taken >= self._ring:
+            self._full(taken, first_seq)
+        self._last_seq.update(newest_seq)
         return out
+
+    def _full(self, taken: int, first_seq: dict[str, int]) -> None:
+        """A drain found the ring full: its consumer had not drained it for ``capacity`` samples (the bus
+        agent's step stalled ~10 s) and the ring dropped its oldest meanwhile. Counted, with how many where
+        ``seq`` tells (the gap from the newest of the drain before to the oldest of this one), and logged."""
+        dropped = sum(max(0, first - last - 1) for key, first in first_seq.items()
+                      if (last := self._last_seq.get(key)) is not None)
+        self.counters.inc(FULL, self._name, self.key)
+        if dropped:
+            self.counters.inc(DROPPED, self._name, self.key, dropped)
+        self._full_limit(self.log, logging.WARNING, "%s receiver on %s was full when drained (%d samples): its "
+                         "consumer fell behind and the oldest were dropped (%s)", self._name, self.key, taken,
+                         f"{dropped} by seq" if first_seq else "how many unknown: no seq")
 
     def deliver(self, handler: Callable[[M], Any]) -> int:
         """drain() to handler, one message at a time, each call guarded as a callback subscriber's (an

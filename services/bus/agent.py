@@ -75,6 +75,7 @@ DIAGNOSIS_PERIOD_S = 1.0
 DIAGNOSIS_KEEP_S = 30.0  # an RSU not heard from for this long is no longer assessed on the wire
 # What the channels hold between two steps (the oldest dropped beyond, rather than stall Zenoh's thread):
 # 10 s of IMU at 100 Hz, and of fixes from 4 RSUs at 10 Hz and more; a step that late meets an IMU gap anyway.
+# A step that finds one full counts it (counters "full", "dropped" by the IMU's seq) and logs it.
 IMU_QUEUE = 1024
 FIX_QUEUE = 512
 GNSS_QUEUE = 16
