@@ -29,6 +29,7 @@ from pydantic import (
     model_validator,
 )
 
+from toptag.fix import clearly_covariance
 from toptag.geometry import wrap_angle
 from toptag.vehicle import VehicleFile
 
@@ -80,30 +81,10 @@ DurationNs = Annotated[int, Field(ge=0, description="integer nanoseconds")]
 Count = Annotated[int, Field(ge=0)]
 
 
-def _clearly_covariance(v: list[list[float]]) -> bool:
-    """True when the 3x3 ``v`` passes _check_covariance's numpy tests for sure: finite, symmetric to the
-    same tolerance (the same float operations), and the lower triangle (what eigvalsh reads) positive
-    definite with a margin far above rounding (its leading principal minors, Sylvester, scaled to
-    entries in [-1, 1]: its smallest eigenvalue is then > 1e-13 of the scale). False says nothing: the
-    numpy tests decide. Pure Python: numpy costs ~30 µs per 3x3, and every PoseFix and FusedPose
-    carries one or two."""
-    (a, b, c), (d, e, f), (g, h, i) = v
-    if not all(map(math.isfinite, (a, b, c, d, e, f, g, h, i))):
-        return False
-    m = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
-    tol = 1e-9 * max(1.0, m)
-    if abs(b - d) > tol or abs(c - g) > tol or abs(f - h) > tol or m == 0.0:
-        return False
-    a, d, g, e, h, i = a / m, d / m, g / m, e / m, h / m, i / m
-    m2 = a * e - d * d
-    m3 = a * (e * i - h * h) - d * (d * i - h * g) + g * (d * h - e * g)
-    return a > 1e-12 and m2 > 1e-12 and m3 > 1e-12  # their rounding errors: ~1e-15
-
-
 def _check_covariance(v: list[list[float]]) -> list[list[float]]:
     if len(v) != 3 or any(len(row) != 3 for row in v):
         raise ValueError("must be a 3x3 matrix")
-    if _clearly_covariance(v):
+    if clearly_covariance(v):
         return v
     c = np.asarray(v, dtype=float)
     if not np.all(np.isfinite(c)):

@@ -14,9 +14,9 @@ from protocol.messages import (
     Imu,
     PoseFix,
     _check_covariance,
-    _clearly_covariance,
     check_id,
 )
+from toptag.fix import Fix, clearly_covariance, covariance_problem
 
 pytestmark = pytest.mark.unit
 
@@ -58,7 +58,7 @@ def _matrices(n: int, seed: int = 0):
 def test_covariance_fast_path_decides_as_numpy():
     fast = 0
     for v in _matrices(30000):
-        if _clearly_covariance(v):
+        if clearly_covariance(v):
             fast += 1
             assert _numpy_check(v), v
         try:
@@ -68,6 +68,14 @@ def test_covariance_fast_path_decides_as_numpy():
             ok = False
         assert ok == _numpy_check(v), v
     assert fast > 5000  # it does take the fast path for ordinary covariances
+
+
+def test_fix_problem_fast_path_decides_as_numpy():
+    fast = 0
+    for v in _matrices(30000, seed=1):
+        fast += clearly_covariance(v)
+        assert Fix(t_ns=1, x=0.0, y=0.0, yaw=0.0, cov=v).problem() == covariance_problem(np.asarray(v)), v
+    assert fast > 5000
 
 
 def test_id_fast_path_decides_as_the_full_check():

@@ -330,6 +330,7 @@ class BusFilter:
         self._archived: dict[str, int] = count_outcomes([])
         self._archived_src: dict[str, dict[str, int]] = {}
         self._archived_flagged = 0
+        self._totals_memo: tuple[dict[str, int], int] | None = None  # _totals until an outcome changes
         self._unknown_clock = 0
         self._imu_rejected = 0
         self._imu_count = 0
@@ -434,6 +435,7 @@ class BusFilter:
         self._fix_keys.insert(i, key)
         self._fix_t.insert(i, fix.t_ns)
         self._fix_recs.insert(i, rec)
+        self._totals_memo = None
         self._seen.add((fix.source, "seq", fix.seq))
         self._seen.add((fix.source, "t", fix.t_ns))
         if fix.t_ns > head:
@@ -484,18 +486,22 @@ class BusFilter:
         return kernels.unmeasured_motion(P, float(x[ST_SPEED]), float(x[ST_YAW]), self._q, tau)
 
     def _totals(self) -> tuple[dict[str, int], int]:
-        """Fix outcome counts and fixes from flagged RSUs: the archived ones plus the buffer's."""
-        counts = dict(self._archived)
-        flagged = self._archived_flagged
-        for r in self._fix_recs:  # _value_: .value is a property, this loop runs at every estimate
-            counts[r.outcome._value_] += 1
-            flagged += r.flagged
-        return counts, flagged
+        """Fix outcome counts and fixes from flagged RSUs: the archived ones plus the buffer's (not to be
+        modified: kept until a fix is added, decided again or archived, as every estimate reads them)."""
+        if self._totals_memo is None:
+            counts = dict(self._archived)
+            flagged = self._archived_flagged
+            for r in self._fix_recs:  # _value_: .value is a property
+                counts[r.outcome._value_] += 1
+                flagged += r.flagged
+            self._totals_memo = counts, flagged
+        return self._totals_memo
 
     def counters(self) -> dict:
         """Counts of fix outcomes (final decisions), per source as well, plus IMU counts."""
         self._ensure_clean()
         total, flagged = self._totals()
+        total = dict(total)
         per_src: dict[str, dict[str, int]] = {s: dict(v) for s, v in self._archived_src.items()}
         for r in self._fix_recs:
             d = per_src.setdefault(r.fix.source, count_outcomes([]))
@@ -633,6 +639,7 @@ class BusFilter:
         del self._fix_t[:m], self._fix_keys[:m], self._fix_recs[:m]
 
     def _archive(self, fix: Fix, outcome: FixOutcome, flagged: bool = False):
+        self._totals_memo = None
         self._archived[outcome.value] += 1
         self._archived_flagged += flagged
         d = self._archived_src.setdefault(fix.source, count_outcomes([]))
@@ -685,6 +692,7 @@ class BusFilter:
                 x, P, t = xu, Pu, tf
             if record:
                 rec.outcome, rec.d2, rec.flagged = outcome, d2, flagged
+                self._totals_memo = None
         if t_to > t:
             x, P = self._predict(x, P, s_from_ns(t_to - t), a, g)
         return x, P, g
