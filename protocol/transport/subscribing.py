@@ -127,7 +127,9 @@ class SafeSubscriber(Generic[M]):
             return sample, lost
 
     # -- decoding and accounting
-    def _decode(self, sample: zenoh.Sample, overwritten: int = 0, skey: str | None = None) -> M | None:
+    def _decode(self, sample: zenoh.Sample, overwritten: int = 0, skey: str | None = None,
+                count: bool = True) -> M | None:
+        """The sample's message, or None (counted and logged); ``count=False``: the caller counts it accepted."""
         if sample.kind == zenoh.SampleKind.DELETE:
             self.counters.inc(IGNORED, self._name, self.key)
             return None
@@ -145,7 +147,8 @@ class SafeSubscriber(Generic[M]):
             self._limit(self.log, logging.ERROR, "cannot decode payload on %s: %s: %s",
                         skey, type(e).__name__, e)
             return None
-        self.counters.inc(ACCEPTED, self._name, self.key)
+        if count:
+            self.counters.inc(ACCEPTED, self._name, self.key)
         if self.latest_only:
             seq = getattr(msg, "seq", None)
             if isinstance(seq, int):
@@ -216,13 +219,15 @@ class SafeSubscriber(Generic[M]):
                 break
             taken += 1
             skey = str(sample.key_expr)
-            msg = self._decode(sample, skey=skey)
+            msg = self._decode(sample, skey=skey, count=False)
             if msg is not None:
                 out.append(msg)
                 seq = getattr(msg, "seq", None)
                 if type(seq) is int:
                     first_seq.setdefault(skey, seq)
                     newest_seq[skey] = seq
+        if out:  # one count per drain, not per message
+            self.counters.inc(ACCEPTED, self._name, self.key, len(out))
         if taken >= self._ring:
             self._full(taken, first_seq)
         self._last_seq.update(newest_seq)

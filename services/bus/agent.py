@@ -226,9 +226,9 @@ class BusAgent:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
             gnss, speed = self._gnss, self._wheel_speed
             past_paths = self._past_paths
-        pos = coarse_position(est, gnss, now_ns)
-        if pos is not None:
-            for event, inter in self.presence.update(pos.x, pos.y):
+        xy = presence_xy(est, gnss, now_ns)
+        if xy is not None:
+            for event, inter in self.presence.update(*xy):
                 if event == "leave":
                     self._leave("left the approach radius")
                 else:
@@ -237,7 +237,8 @@ class BusAgent:
             self._position = announced_position(est, gnss, speed, now_ns)
             self._announce()
         if est is not None:  # the health counts every fix since the agent started, across filters
-            est = dataclasses.replace(est, health=est.health.plus_paths(past_paths))
+            if past_paths:
+                est = dataclasses.replace(est, health=est.health.plus_paths(past_paths))
             self._fused_pub.put(fused_to_message(est, self.bus_id))
         if time.monotonic() - self._last_diagnosis >= DIAGNOSIS_PERIOD_S:
             self._last_diagnosis = time.monotonic()
@@ -307,6 +308,13 @@ def coarse_position(est, gnss: GnssFix | None, now_ns: int) -> CoarsePosition | 
     return gnss_position(gnss, now_ns)
 
 
+def presence_xy(est, gnss: GnssFix | None, now_ns: int) -> tuple[float, float] | None:
+    """coarse_position's x, y, without the message: the step's presence needs no more, 50 times a second."""
+    if est is not None and est.health.status == "ok":
+        return est.x, est.y
+    return None if _gnss_too_old(gnss, now_ns) else (gnss.x, gnss.y)
+
+
 def announced_position(est, gnss: GnssFix | None, wheel_speed: float | None, now_ns: int) -> CoarsePosition | None:
     """Where the bus tells the RSUs it is. Its filter's pose once a fix has started it (kept by IMU and
     odometry between fixes, its covariance growing honestly), with its velocity and that velocity's
@@ -328,10 +336,15 @@ def announced_position(est, gnss: GnssFix | None, wheel_speed: float | None, now
 def gnss_position(gnss: GnssFix | None, now_ns: int, speed_mps: float | None = None) -> CoarsePosition | None:
     """The latest GNSS fix as a coarse position (None when there is none or it is too old to say
     where the bus is)."""
-    if gnss is None or s_from_ns(now_ns - gnss.t_ns) >= GNSS_MAX_AGE_S:
+    if _gnss_too_old(gnss, now_ns):
         return None
     return CoarsePosition(t_ns=gnss.t_ns, x=gnss.x, y=gnss.y, sigma_m=gnss.sigma_m, source="gnss",
                           speed_mps=speed_mps)
+
+
+def _gnss_too_old(gnss: GnssFix | None, now_ns: int) -> bool:
+    """No GNSS fix, or one too old to say where the bus is."""
+    return gnss is None or s_from_ns(now_ns - gnss.t_ns) >= GNSS_MAX_AGE_S
 
 
 def build_parser() -> argparse.ArgumentParser:
