@@ -1,7 +1,7 @@
 """The bus agent takes its inputs in at its step: IMU samples, GNSS and PoseFixes wait in Zenoh's channels
 (filled without a Python thread per message) and each step feeds everything received since the last one
-to the filter, in arrival order, before it estimates. A real agent on a real Zenoh peer session; the test
-session publishes as the bus's sensors and an RSU would."""
+to the filter (IMU and GNSS in arrival order, fixes in capture order) before it estimates. A real agent on
+a real Zenoh peer session; the test session publishes as the bus's sensors and an RSU would."""
 from __future__ import annotations
 
 from pathlib import Path
