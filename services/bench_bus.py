@@ -2,7 +2,8 @@
 
     toptag bench bus [--duration 30] [--rsus 4] [--fix-hz 10] [--latency-ms 100] [--jitter-ms 30] [--json]
 
-Starts the real agent (`toptag bus`, its own process, the demo's bus-42 and map) connected in peer mode
+Starts the real agent (`toptag bus`, its own process, the demo's bus-42 and the corner site's map, whose 45 m
+approach radius holds the drive from its start) connected in peer mode
 to this process's Zenoh peer (tcp/127.0.0.1:<free port>, multicast scouting off). This process plays one
 drive of that bus through the demo's intersection in real time (the fusion study's left turn from the
 west, slowed so that it lasts --duration s): IMU/odometry at 100 Hz (sim.motion.ImuModel), GNSS at 1 Hz
@@ -43,7 +44,7 @@ from toptag.vehicle import Vehicle
 
 DEMO = Path(__file__).resolve().parents[1] / "toptag" / "data" / "demo"
 VEHICLE = DEMO / "bus-42.json"
-MAP = DEMO / "map.json"
+MAP = DEMO / "corners" / "map.json"  # the demo site's 18 m radius leaves the drive's start out of session
 INTERSECTION = "x1"
 GNSS_HZ = 1.0
 GNSS_SIGMA_M = 2.0

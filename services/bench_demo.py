@@ -10,7 +10,7 @@ Prints and writes (--out, JSON) what says whether the demo keeps real time on th
   did for that bus in that frame (tracked, hinted, acquired) with its parts: capture to the start of
   the RSU's processing (camera, transport, waiting), processing, transit;
 - the fraction of fused samples with status "ok" while a bus is in session (its Approach to its Leave),
-  and of those taken while two of its tags were in some camera's image (its true pose; the scenario's
+  and of those taken while two of its tags were decodable in some camera's image (its true pose; the scenario's
   cameras): where the cameras can see the bus at all, so what speed, not the site, decides.
 The figures depend on the machine and its load: quote `nproc`, the CPU model and what else ran.
 """
@@ -65,7 +65,7 @@ def figures(report: dict) -> dict:
             "fix_latency_by_mode": totals.get("latency_by_mode", {}),
             "fused_ok_in_session": {"fraction": totals.get("fused_in_session_ok_fraction"),
                                     "samples": totals.get("fused_in_session_samples")},
-            # ... at the moments two of the bus's tags were in some camera's image (its true pose)
+            # ... at the moments two of the bus's tags were decodable in some camera's image (its true pose)
             "fused_ok_in_view": {"fraction": totals.get("fused_in_view_ok_fraction"),
                                  "samples": totals.get("fused_in_view_samples")},
             "buses": buses,
@@ -130,7 +130,7 @@ def table(f: dict) -> str:
                  f" of {ok['samples']} samples")
     seen = f.get("fused_ok_in_view") or {}
     if seen.get("samples") is not None:
-        lines.append(f"  of them while two of its tags were in some camera's image: "
+        lines.append(f"  of them while two of its tags were decodable in some camera's image: "
                      f"{_fmt(None if seen['fraction'] is None else 100 * seen['fraction'])} % of {seen['samples']} samples")
     return "\n".join(lines)
 

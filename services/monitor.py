@@ -123,7 +123,7 @@ class BusScore:
         self.in_session = False
         self.session_fused = 0
         self.session_fused_ok = 0
-        # ... of which, with the truth at their time, two of the bus's tags in some camera's image (only
+        # ... of which, with the truth at their time, two of the bus's tags decodable in some camera's image (only
         # with a ViewCoverage: the simulator's cameras), and how many of those said ok.
         self.session_in_view = 0
         self.session_in_view_ok = 0
@@ -132,7 +132,7 @@ class BusScore:
 
 
 class ViewCoverage:
-    """Whether a bus, at its true pose, has two of its tags in some camera's image (sim.sampling.in_some_view,
+    """Whether a bus, at its true pose, has two of its tags decodable in some camera's image (sim.sampling.in_some_view,
     the scenario's cameras): the condition under which an RSU can fix it at all, and so where "fused ok"
     measures the system rather than where its cameras are."""
 

@@ -8,6 +8,7 @@ from sim.render import Occluder, PlacedVehicle
 from sim.scene import ROAD_HALF_WIDTH
 from toptag.camera import Camera
 from toptag.geometry import vehicle_to_world
+from toptag.rsu.regions import thinnest_cell_px
 from toptag.vehicle import Vehicle
 
 SECTOR_HALF_ANGLE = np.deg2rad(30.0)  # around the RSU heading: the intersection quarter nearest to it
@@ -23,21 +24,31 @@ def camera_heading(camera: Camera) -> float:
     return float(np.arctan2(fwd[1], fwd[0]))
 
 
-def visible_tags(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> list[int]:
-    """The tags whose whole printed plate (with its white border) projects inside the image (occlusion
-    not considered)."""
+# A tag is decodable when its thinnest cell in the image (toptag.rsu.regions.thinnest_cell_px) is at least
+# this many px. Measured with the demo's renderer, image model and RSU pipeline at 960x720
+# (`python -m sim.studies.acquire_range`, docs/site.md "Decodable tags"): tracking crops decoded few tags
+# with cells under 1.25 px, about two thirds at 1.5-1.625 px and nearly all from 1.75 px on; the shortest
+# side does not separate them (a grazing tag turned 45 degrees keeps long sides).
+DECODABLE_CELL_PX = 1.75
+
+
+def visible_tags(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0, min_cell_px: float = 0.0) -> list[int]:
+    """The tags whose whole printed plate (with its white border) projects inside the image and whose
+    cells are at least min_cell_px tall in it (occlusion not considered)."""
     seen = []
     for tid in pv.vehicle.tag_ids:
         world = vehicle_to_world(pv.vehicle.plate_corners(tid), pv.x, pv.y, pv.yaw, pv.roof_z)
         if np.all(camera.to_camera(world)[:, 2] > 0) and np.all(camera.in_image(camera.project(world), margin_px)):
-            seen.append(tid)
+            if min_cell_px <= 0 or thinnest_cell_px(camera.project(pv.tag_corners_world(tid))) >= min_cell_px:
+                seen.append(tid)
     return seen
 
 
-def in_some_view(cameras, pv: PlacedVehicle, min_tags: int = 2, margin_px: float = 2.0) -> bool:
-    """At least min_tags of the vehicle's tags project whole inside one of the cameras' images: where an
-    RSU can fix it at all (occlusion and the tags' size in pixels not considered)."""
-    return any(len(visible_tags(c, pv, margin_px)) >= min_tags for c in cameras)
+def in_some_view(cameras, pv: PlacedVehicle, min_tags: int = 2, margin_px: float = 2.0,
+                 min_cell_px: float = DECODABLE_CELL_PX) -> bool:
+    """At least min_tags of the vehicle's tags are decodable in one of the cameras' images (whole inside
+    it, cells at least min_cell_px tall): where an RSU can fix it (occlusion not considered)."""
+    return any(len(visible_tags(c, pv, margin_px, min_cell_px)) >= min_tags for c in cameras)
 
 
 def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> bool:

@@ -10,12 +10,16 @@ the junction box (where the roads cross) that one and two cameras see at roof he
 of an intersection no camera covers; and the share of its roads within the approach radius that a
 camera sees, with the distance from the centre up to which 90 % of them are seen: a bus in session
 (inside the approach radius) beyond that is not fixed by an RSU, so its fused pose is not "ok" there.
+"Seen" means decodable: a roof tag of the site's smallest size there, heading along the road, would show
+cells at least sim.sampling.DECODABLE_CELL_PX tall (measured with the renderer and the RSU pipeline,
+docs/site.md), not merely be inside the image.
 With a scenario, its drive (the buses' true poses over one pass of its legs, 10 Hz): per bus, the share
-of its session (presence as the bus computes it) with two of its tags whole in some camera's image, at
-the approach radius and at smaller ones (the ceiling of "fused ok while in session" for each radius),
+of its session (presence as the bus computes it) with two of its tags decodable in some camera's image
+(whole in it, cells DECODABLE_CELL_PX tall), at the approach radius and at smaller ones (the ceiling of
+"fused ok while in session" for each radius),
 and its longest stretch out of every image within the distance the cameras cover (a blind spot on its
 route). Draws the top view (default DIR/site-check.png): roads, approach radius, RSU positions, each
-camera's footprint on the ground and its 8-25 m band at roof height.
+camera's footprint on the ground and where at roof height it sees tags decodably.
 
 Lives in sim/ because it validates the simulator's scenario too; it draws nothing the RSUs compute.
 """
@@ -27,15 +31,17 @@ from pathlib import Path
 
 import numpy as np
 
+from sim.sampling import DECODABLE_CELL_PX
 from sim.studies import require_plotting
 from toptag.camera import Camera
 from toptag.errors import InputError, SetupError
+from toptag.rsu.regions import plane_scale_px
 from toptag.site import IntersectionSpec, MapFile, load_site_file
 from toptag.vehicle import Vehicle
 
 ROOF_Z = 3.0
-NEAR, FAR = 8.0, 25.0
-DRIVE_RADII = (35.0, 25.0, 20.0, 15.0)  # approach radii below the site's at which the drive is also scored  # the roof footprint band: horizontal distance from the camera, m
+BAND_RANGE = 30.0  # the decodable roof band is drawn within this horizontal distance of the camera, m
+DRIVE_RADII = (35.0, 25.0, 20.0, 15.0)  # approach radii below the site's at which the drive is also scored
 GROUND_RANGE = 60.0  # ground footprints are drawn to this distance from the camera
 
 
@@ -60,15 +66,35 @@ def _ground_hits(camera: Camera, z: float, max_range: float, n: int = 40) -> np.
     return np.array(pts)
 
 
-def sees(camera: Camera, xy: np.ndarray, z: float = ROOF_Z, near: float = 0.0, far: float = np.inf) -> np.ndarray:
-    """(N,) whether points (N,2) at height z are in the image and near..far (horizontal) from the camera."""
+def sees(camera: Camera, xy: np.ndarray, z: float = ROOF_Z, near: float = 0.0, far: float = np.inf,
+         min_scale: float = 0.0, heading_deg: float | None = None) -> np.ndarray:
+    """(N,) whether points (N,2) at height z are in the image and near..far (horizontal) from the camera,
+    where a square of 1 m on the plane z, its sides along heading_deg (None: at its worst heading), is at
+    least min_scale px across its narrowest direction in the image (8 cells of sampling.thinnest_cell_px's)."""
     P = np.column_stack([xy, np.full(len(xy), z)])
     front = camera.to_camera(P)[:, 2] > 0.5
     d = np.hypot(*(xy - camera.center[:2]).T)
     ok = front & (d >= near) & (d <= far)
     px = np.full((len(xy), 2), -1e9)
     px[ok] = camera.project(P[ok])
-    return ok & camera.in_image(px)
+    ok &= camera.in_image(px)
+    if min_scale > 0 and ok.any():
+        ok[ok] = _square_width_px(camera, P[ok], heading_deg) >= min_scale
+    return ok
+
+
+def _square_width_px(camera: Camera, points: np.ndarray, heading_deg: float | None, step_m: float = 0.05) -> np.ndarray:
+    """The narrowest width (px) of a 1 m square on the horizontal plane at each point, sides along
+    heading_deg: the parallelogram's area over its longer side; at the worst heading (None), the plane's
+    smallest scale there."""
+    if heading_deg is None:
+        return plane_scale_px(camera, points, step_m)[0]
+    a = np.radians(heading_deg)
+    u, n = np.array([np.cos(a), np.sin(a), 0.0]), np.array([-np.sin(a), np.cos(a), 0.0])
+    uv = camera.project(points)
+    ju, jn = (camera.project(points + step_m * u) - uv) / step_m, (camera.project(points + step_m * n) - uv) / step_m
+    area = np.abs(ju[:, 0] * jn[:, 1] - ju[:, 1] * jn[:, 0])
+    return area / np.maximum(np.hypot(*ju.T), np.hypot(*jn.T))
 
 
 def _grid(half: float, step: float) -> np.ndarray:
@@ -129,6 +155,7 @@ class SiteCheck:
         self.vehicles: list[Vehicle] = []
         self.coverage: dict[str, dict] = {}
         self.scenario = None
+        self.min_scale = 0.0  # px per metre at roof height where the site's tags are decodable (0: no vehicles)
 
     def _load(self, what, loader):
         try:
@@ -183,6 +210,8 @@ class SiteCheck:
             from sim.scenario import load_scenario
 
             self.scenario = self._load(site.scenario, lambda: load_scenario(d / site.scenario))
+        if self.vehicles:  # the 8 cells across the smallest tag's black square span its size * this scale
+            self.min_scale = 8 * DECODABLE_CELL_PX / min(t.size for v in self.vehicles for t in v.spec.tags)
         if self.map is not None:
             self._cover()
             if self.scenario is not None and not self.errors:
@@ -238,22 +267,26 @@ class SiteCheck:
             self.coverage[inter.id]["drive"] = {"duration_s": round(world.legs_end_ns / 1e9, 1), "buses": buses}
             worst = min((b["in_view_in_session"].get(inter.radius, 1.0) for b in buses.values()), default=1.0)
             if worst < 0.95:
-                self.notes.append(f"intersection {inter.id}: in the scenario's drive a bus has two tags in some camera's "
-                                  f"image during only {100 * worst:.0f} % of its session: its fused pose is \"ok\" (a fix "
-                                  f"less than 1 s old) for little more of it; the shares at smaller approach radii follow")
+                self.notes.append(f"intersection {inter.id}: in the scenario's drive a bus has two tags decodable in "
+                                  f"some camera's image during only {100 * worst:.0f} % of its session: its fused pose "
+                                  f"is \"ok\" (a fix less than 1 s old) for little more of it; the shares at smaller "
+                                  "approach radii follow")
 
     def _cover(self) -> None:
         for inter in self.map.intersections:
             cams = [c for c, i in self.cameras if i == inter.id]
             box = junction_box(inter)
             n = np.zeros(len(box), int)
-            for c in cams:
-                n += sees(c, box, ROOF_Z, 0.0, FAR)
+            for c in cams:  # a bus in the box heads along one of the roads
+                n += np.any([sees(c, box, ROOF_Z, min_scale=self.min_scale, heading_deg=r.heading_deg)
+                             for r in inter.roads], axis=0)
             one, two = float(np.mean(n >= 1)), float(np.mean(n >= 2))
             roads = approach_roads(inter)
             seen = np.zeros(len(roads), bool)
             for c in cams:
-                seen |= sees(c, roads, ROOF_Z, 0.0, FAR)
+                for r in inter.roads:
+                    on = _on_road(roads - np.asarray(inter.center), r)
+                    seen[on] |= sees(c, roads[on], ROOF_Z, min_scale=self.min_scale, heading_deg=r.heading_deg)
             approach = float(np.mean(seen)) if len(roads) else 0.0
             reach = covered_radius(np.hypot(*(roads - np.asarray(inter.center)).T), seen) if len(roads) else 0.0
             self.coverage[inter.id] = {"cameras": [c.id for c in cams], "one": one, "two": two,
@@ -266,7 +299,7 @@ class SiteCheck:
                 self.warnings.append(f"intersection {inter.id}: no camera covers it")
             elif one < 0.9:
                 self.warnings.append(f"intersection {inter.id}: only {100 * one:.0f} % of the junction box is seen by a "
-                                     f"camera at roof height within {FAR:g} m")
+                                     "camera where its tags are decodable at roof height")
 
     def draw(self, out: Path) -> None:
         import matplotlib
@@ -308,7 +341,8 @@ class SiteCheck:
             ax.plot(c[0], c[1], "^", color=col, ms=9, zorder=3)
             ax.annotate(cam.id, c[:2] + [1, 1], fontsize=8, color=col)
         ax.set(aspect="equal", xlabel="x east (m)", ylabel="y north (m)",
-               title=f"site {self.folder.name}: ground footprints (shaded), roof-height {NEAR:g}-{FAR:g} m band (dots), "
+               title=f"site {self.folder.name}: ground footprints (shaded), roof height where tags are decodable "
+                     "(dots), "
                      "approach radius (dashed)")
         ax.title.set_fontsize(8)
         ax.autoscale_view()
@@ -318,10 +352,10 @@ class SiteCheck:
 
     def _band(self, cam: Camera, step: float = 1.5) -> np.ndarray:
         c = cam.center[:2]
-        xs = np.arange(-FAR, FAR + step, step)
+        xs = np.arange(-BAND_RANGE, BAND_RANGE + step, step)
         X, Y = np.meshgrid(xs + c[0], xs + c[1])
         pts = np.column_stack([X.ravel(), Y.ravel()])
-        return pts[sees(cam, pts, ROOF_Z, NEAR, FAR)]
+        return pts[sees(cam, pts, ROOF_Z, far=BAND_RANGE, min_scale=self.min_scale)]
 
 
 def main(argv: list[str]) -> int:
@@ -345,8 +379,8 @@ def main(argv: list[str]) -> int:
                   f"{100 * cov['approach']:.0f} % (90 % up to {cov['covered_radius_m']:g} m from the centre)")
             drive = cov.get("drive")
             if drive:
-                print(f"  {iid}: the scenario's drive ({drive['duration_s']:g} s, true poses): two tags of the bus in some "
-                      f"camera's image during its session")
+                print(f"  {iid}: the scenario's drive ({drive['duration_s']:g} s, true poses): two tags of the bus "
+                      "decodable in some camera's image during its session")
                 for bus, b in drive["buses"].items():
                     shares = ", ".join(f"{r:g} m {100 * v:.0f} %" for r, v in b["in_view_in_session"].items())
                     blind = (f"; longest unseen within {cov['covered_radius_m']:g} m: {b['longest_unseen_within_reach_s']:g} s, "

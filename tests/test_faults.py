@@ -70,15 +70,15 @@ def test_the_rsu_with_its_surveyed_camera_sees_a_turned_camera_frame_turned_abou
     surveyed camera file, reports the bus turned about the pole by -0.5 deg: what seen_pose predicts
     (the fusion study's drift model), and far from the truth."""
     w = drifted_world
-    t = _in_view(w, "rsu-sw", "bus-17")
+    t = _in_view(w, "rsu-sw", "bus-42")
     jpeg, stamp = w.capture("rsu-sw", t)
     assert stamp == t
     gray = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
     surveyed = w.camera("rsu-sw")
     pipe = RsuPipeline(surveyed)
-    pipe.add_vehicle(w.vehicle("bus-17"))
-    fix = pipe.process(gray, stamp, 0).vehicles["bus-17"].fix
-    st = w.state("bus-17", t)
+    pipe.add_vehicle(w.vehicle("bus-42"))
+    fix = pipe.process(gray, stamp, 0).vehicles["bus-42"].fix
+    st = w.state("bus-42", t)
     expected = seen_pose(surveyed, w.actual_camera("rsu-sw", t), st.x, st.y, st.yaw, st.z)
     truth_err = math.hypot(fix.x - st.x, fix.y - st.y)
     assert math.hypot(fix.x - expected[0], fix.y - expected[1]) < 0.02 < 0.5 * truth_err

@@ -431,7 +431,7 @@ def test_the_real_services_work_under_the_access_control(pki, secure_router, cli
     from toptag.camera import Camera
 
     site = bundled_scenario_path().parent
-    camera = Camera.load(site / "rsu-sw.json")
+    camera = Camera.load(site / "corners" / "rsu-sw.json")  # SPEC's corner pole, which sees this stretch of road
     vehicle, rng = bundled_vehicle("bus_double"), np.random.default_rng(4)
     frames = [render_jpeg(camera, [PlacedVehicle(vehicle, -6.0 + 0.5 * i, -1.85, 0.0, 3.0, speed=3.5)], rng=rng)
               for i in range(6)]
@@ -465,7 +465,7 @@ def test_the_real_services_work_under_the_access_control(pki, secure_router, cli
 
     feeder = threading.Thread(target=simulate, daemon=True)
     try:
-        rsu = start("rsu", "rsu.rsu-sw", ["rsu", "--camera", str(site / "rsu-sw.json"), "--intersection", X])
+        rsu = start("rsu", "rsu.rsu-sw", ["rsu", "--camera", str(site / "corners" / "rsu-sw.json"), "--intersection", X])
         bus = start("bus", "bus.bus-17", ["bus", "--vehicle", str(site / "bus-17.json"), "--map", str(site / "map.json")])
         feeder.start()
         ok = fixes.wait(lambda items: len(items) >= 5, 40) and fused.wait(lambda items: len(items) >= 1, 60) and \

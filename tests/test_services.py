@@ -18,10 +18,10 @@ from toptag.waiting import wait_until
 pytestmark = pytest.mark.integration
 
 SITE = bundled_scenario_path().parent
-CAMERA = SITE / "rsu-sw.json"
+CAMERA = SITE / "corners" / "rsu-sw.json"  # SPEC's corner pole: the frames below lie in the middle of its view
 BUS = SITE / "bus-17.json"
-MAP = SITE / "map.json"
-# The approach radius of x1 is 45 m. Inside, the satellite position is where the frames show the bus (the
+MAP = SITE / "corners" / "map.json"
+# The approach radius of x1 is 45 m there. Inside, the satellite position is where the frames show the bus (the
 # middle of its pass): the bus announces it, and the RSU searches only where it can be.
 INSIDE, OUTSIDE = (-1.0, -1.85), (-80.0, -1.85)
 

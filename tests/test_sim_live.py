@@ -41,8 +41,8 @@ def _write(tmp_path: Path, data: dict, name: str = "scenario.json") -> Path:
 
 
 def _short_scenario(**over) -> dict:
-    """Two RSUs (rsu-ne at 5 fps), two buses driving west->east 3 s apart, starting just outside the
-    GNSS shadow; paths absolute (into the bundled demo site)."""
+    """Two RSUs (rsu-ne at 5 fps), two buses driving west->east 3 s apart, starting 34 m out (GNSS
+    fixes until the shadow); paths absolute (into the bundled demo site)."""
     data = {
         "intersection_id": "x1", "map": str(DEMO / "map.json"),
         "rsus": [str(DEMO / "rsu-sw.json"), {"camera": str(DEMO / "rsu-ne.json"), "fps": 5}],
@@ -98,7 +98,8 @@ def test_every_bundled_leg_is_seen_by_several_rsus(bundled):
                     if bundled.tags_in_view(r, t).get(b.id):
                         seen[r] += 0.2
             assert sum(s >= 2.0 for s in seen.values()) >= 2, (b.id, lr.index, seen)
-            assert max(seen.values()) >= 4.0, (b.id, lr.index, seen)
+            # the demo's poles share a leg between them, each its stretch of the road: one sees 3 s of it
+            assert max(seen.values()) >= 3.0, (b.id, lr.index, seen)
 
 
 @pytest.mark.parametrize("change, expected", [
@@ -237,7 +238,7 @@ def test_gnss_only_outside_the_shadow_and_with_its_sigma(bundled):
         for lr in b.legs:
             ts = [g.t_ns for g in fixes if g.bus_id == b.id and lr.start_ns <= g.t_ns <= lr.end_ns]
             assert len(ts) >= 5, (b.id, lr.index, len(ts))
-            assert max(np.diff(ts)) > 5 * NS_PER_S  # the silent stretch through the intersection
+            assert max(np.diff(ts)) > 2 * NS_PER_S  # the silent stretch through the intersection (20 m of road)
 
 
 @pytest.mark.unit
@@ -285,7 +286,9 @@ def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launc
     from protocol import Frame, GnssFix, GroundTruth, Imu, keys
     from protocol.transport import subscribe_messages
 
-    path = _write(tmp_path, _short_scenario())
+    # rsu-nw's pole looks down the eastbound lane the buses come in on
+    rsus = [str(DEMO / "rsu-nw.json"), {"camera": str(DEMO / "rsu-ne.json"), "fps": 5}]
+    path = _write(tmp_path, _short_scenario(rsus=rsus))
     world = World(load_scenario(path))
     ep = f"tcp/127.0.0.1:{free_port()}"
     session = zenoh_session("peer", listen=[ep])
@@ -327,14 +330,14 @@ def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launc
             assert (m.encoding, m.width, m.height, img.shape) == ("jpeg", 960, 720, (720, 960))
     # the frame shows the bus where the truth puts it at the capture time
     from sim.raster import raster_for
-    cam = world.camera("rsu-sw")
+    cam = world.camera("rsu-nw")
     bg = raster_for(cam).finished_background(world.model).astype(float)
 
     def centre_offset(m):  # where the truth puts bus-17's roof centre in that frame
         s = world.state("bus-17", m.capture_time_ns)
         return np.round(cam.project(np.array([[s.x, s.y, s.z]]))[0]).astype(int)
 
-    last = min((m for _, m in boxes["frame", "rsu-sw"].items),
+    last = min((m for _, m in boxes["frame", "rsu-nw"].items),
                key=lambda m: np.hypot(*(centre_offset(m) - [480, 360])))
     u, v = centre_offset(last)
     img = cv2.imdecode(np.frombuffer(last.image, np.uint8), cv2.IMREAD_GRAYSCALE).astype(float)
@@ -374,11 +377,13 @@ def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launc
             assert abs(m.z - (3.0 + ref.roof_dz)) < 1e-9 and abs(m.speed - ref.speed) < 1e-9
         assert np.all(np.diff([m.t_ns for _, m in items]) == 50_000_000)
 
-    # GNSS: only outside the shadow radius (the first ~0.5 s of each leg here), with N(0, 2 m)
+    # GNSS: only outside the shadow radius (the first ~3 s of each leg here, and past it), with N(0, 2 m)
     shadow = world.intersection.gnss_shadow_radius
     for bus in world.bus_ids:
         items = boxes["gnss", bus].items
-        assert 1 <= len(items) <= 4, (bus, len(items))
+        states = [world.state(bus, t) for t in range(t0, t0 + 6 * NS_PER_S, NS_PER_S // 5)]  # its 5 Hz
+        outside = sum(np.hypot(st.x, st.y) >= shadow for st in states if st is not None)
+        assert 1 <= len(items) <= outside + 1, (bus, len(items), outside)
         for _, m in items:
             s = world.state(bus, m.t_ns)
             assert np.hypot(s.x, s.y) >= shadow and m.sigma_m == 2.0

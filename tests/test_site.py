@@ -6,12 +6,19 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from sim.render import PlacedVehicle
+from sim.sampling import DECODABLE_CELL_PX, in_some_view, visible_tags
+from sim.scene import rsu_camera, rsu_cameras
 from sim.site_check import SiteCheck
 from sim.scenario import bundled_scenario_path
+from toptag.camera import Camera
 from toptag.inputs import InputError
+from toptag.rsu.regions import thinnest_cell_px
 from toptag.site import load_site_file
+from toptag.vehicle import Vehicle
 
 DEMO = bundled_scenario_path().parent
 
@@ -27,36 +34,55 @@ def test_the_demo_site_is_a_valid_site_folder(tmp_path):
     assert "x1: cameras rsu-sw, rsu-se, rsu-ne, rsu-nw" in r.stdout and "by one camera 100 %" in r.stdout
     assert "valid" in r.stdout and "warning" not in r.stderr
     assert out.stat().st_size > 20_000
-    # The corner poles see the roads up to ~15 m from the centre (the simulated drive: two tags of a bus in
-    # some camera's view 94 % of the time within 15 m, 0 % beyond 20 m), not the 45 m approach radius.
-    assert "roads within the approach radius by one 25 % (90 % up to 15 m from the centre)" in r.stdout
-    assert "x1: cameras see 25 % of its roads within the approach radius (45 m)" in r.stdout
-    assert "bus-17: with an approach radius of 45 m" in r.stdout and "bus-42: with an approach radius of 45 m" in r.stdout
+    # The demo's poles see tags decodably on the roads up to its 18 m approach radius: no note of a
+    # session the cameras cannot follow.
+    assert "roads within the approach radius by one 97 % (90 % up to 18 m from the centre)" in r.stdout
+    assert "of its roads within the approach radius" not in r.stdout
+    for bus in ("bus-17", "bus-42"):
+        assert f"{bus}: with an approach radius of 18 m 97 %" in r.stdout
+
+
+def spec_corner_site(folder: Path, radius: float = 45.0) -> Path:
+    """The demo site with SPEC's four corner RSUs (the paper study's arrangement, sim.scene) and the
+    approach radius and GNSS shadow the demo had with them."""
+    shutil.copytree(DEMO, folder, ignore=shutil.ignore_patterns("__init__.py", "__pycache__"))
+    for cam in rsu_cameras(960, 720, dist=Camera.load(DEMO / "rsu-sw.json").dist):
+        (folder / f"{cam.id}.json").write_text(cam.to_json())
+    m = json.loads((DEMO / "map.json").read_text())
+    m["intersections"][0].update(radius=radius, leave_margin=5.0, gnss_shadow_radius=30.0)
+    (folder / "map.json").write_text(json.dumps(m))
+    return folder
 
 
 @pytest.mark.integration
-def test_site_check_scores_the_scenarios_drive_and_finds_its_blind_spot():
-    """Per bus, the share of its session in some camera's image rises as the approach radius shrinks (what
-    bounds "fused ok while in session"); bus-17's right turn from the east runs in the curb lane (y 5.5 m),
-    which no corner camera sees between ~14 and ~8 m from the centre."""
-    check = SiteCheck(DEMO).run()
+def test_site_check_scores_the_scenarios_drive_and_finds_its_blind_spot(tmp_path):
+    """On SPEC's corner poles, per bus, the share of its session with two tags decodable in some camera
+    rises as the approach radius shrinks (what bounds "fused ok while in session"); bus-17's right turn
+    from the east runs in the curb lane (y 5.5 m), which no corner camera sees from ~14 to ~8 m out.
+    The demo site's poles keep both buses decodable through their sessions."""
+    check = SiteCheck(spec_corner_site(tmp_path / "spec")).run()
     drive = check.coverage["x1"]["drive"]
     assert drive["duration_s"] > 40
     for bus, b in drive["buses"].items():
         shares = [b["in_view_in_session"][r] for r in (45.0, 35.0, 25.0, 20.0, 15.0)]
         assert all(a < c for a, c in zip(shares, shares[1:])), (bus, shares)
-        assert 0.2 < shares[0] < 0.7, (bus, shares)  # far from the issue's 95 %: the site, not the software
+        assert 0.15 < shares[0] < 0.5 and shares[-1] < 0.9, (bus, shares)  # the site, not the software
     b17 = drive["buses"]["bus-17"]
     assert b17["longest_unseen_within_reach_s"] >= 1.0
     (x0, y0), (x1, y1) = b17["unseen_from_to"]
     assert x0 > x1 > 5 and abs(y0 - 5.5) < 0.5, b17
-    assert any("in the scenario's drive a bus has two tags" in n for n in check.notes)
+    assert any("in the scenario's drive a bus has two tags decodable" in n for n in check.notes)
+    demo = SiteCheck(DEMO).run()
+    for bus, b in demo.coverage["x1"]["drive"]["buses"].items():
+        assert b["in_view_in_session"][18.0] > 0.96 and b["longest_unseen_within_reach_s"] <= 0.5, (bus, b)
+    assert not any("in the scenario's drive" in n for n in demo.notes)
 
 
 @pytest.mark.integration
 def test_site_check_says_how_much_of_a_session_the_cameras_can_see(tmp_path):
-    """The share of the approach roads in view follows the approach radius; the note goes once it is small
-    enough for the cameras to see nearly all of it."""
+    """The share of the approach roads where tags are decodable follows the approach radius; the note goes
+    once it is small enough for the cameras to see nearly all of it (the demo's poles: ~22 m; SPEC's
+    corner poles, whose far rows show a tag a few px tall: ~13 m)."""
     site = tmp_path / "site"
     shutil.copytree(DEMO, site, ignore=shutil.ignore_patterns("__init__.py", "__pycache__"))
     shares = {}
@@ -67,9 +93,27 @@ def test_site_check_says_how_much_of_a_session_the_cameras_can_see(tmp_path):
         check = SiteCheck(site).run()
         cov = check.coverage["x1"]
         shares[radius] = cov["approach"]
-        assert 13 <= cov["covered_radius_m"] <= min(radius, 17), (radius, cov)
+        assert min(radius, 18) <= cov["covered_radius_m"] <= min(radius, 24), (radius, cov)
         assert any("of its roads within the approach radius" in n for n in check.notes) == (cov["approach"] < 0.9)
     assert shares[45.0] < shares[25.0] < shares[14.0] and shares[14.0] >= 0.9, shares
+    spec = SiteCheck(spec_corner_site(tmp_path / "spec", radius=25.0)).run().coverage["x1"]
+    assert spec["covered_radius_m"] <= 14 and spec["approach"] < 0.5, spec
+
+
+@pytest.mark.unit
+def test_a_tag_whole_in_the_image_but_few_pixels_across_is_not_decodable():
+    """sim.sampling's rule: a bus far out near the side of a corner camera's (barrel-distorted) image has
+    both plates inside it, but its tags' cells are under DECODABLE_CELL_PX tall in it;
+    near, they count."""
+    cam = rsu_camera("sw", dist=Camera.load(DEMO / "rsu-sw.json").dist)
+    bus = Vehicle.load(DEMO / "bus-17.json")
+    far = PlacedVehicle(bus, 17.0, -1.0, np.radians(135.0))  # ~28 m from the pole
+    near = PlacedVehicle(bus, -2.0, -2.0, np.radians(45.0))
+    assert len(visible_tags(cam, far, min_cell_px=0.0)) == 2
+    cells = [thinnest_cell_px(cam.project(far.tag_corners_world(t))) for t in bus.tag_ids]
+    assert max(cells) < DECODABLE_CELL_PX, cells
+    assert visible_tags(cam, far, min_cell_px=DECODABLE_CELL_PX) == [] and not in_some_view([cam], far)
+    assert in_some_view([cam], near)
 
 
 @pytest.mark.integration
@@ -99,7 +143,9 @@ def test_site_check_names_each_problem_and_warns_of_uncovered_intersections(tmp_
     assert "bus-99.json: tag tag36h11 3 is also on bus-17" in text
     assert all("\n" not in e for e in check.errors)
     assert any("intersection x2: no camera covers it" in w for w in check.warnings)
-    assert check.coverage["x1"]["one"] > 0.9  # rsu-sw alone still sees nearly all of x1
+    cov = check.coverage["x1"]  # rsu-sw alone is left at x1: its quarter of the junction box
+    assert cov["cameras"] == ["rsu-sw"] and 0.2 < cov["one"] < 0.9 and cov["two"] == 0.0, cov
+    assert any("intersection x1: only" in w for w in check.warnings)
     r = subprocess.run([sys.executable, "-m", "toptag", "site", "check", str(site)], capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 2 and "6 error(s)" in r.stderr

@@ -45,11 +45,11 @@ def _toptag(*args, timeout=600, cwd=None):
 
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory):
-    """6 s of rsu-sw's view of bus-17 turning, as H.264 and as PNG frames, with the truth file."""
+    """6 s of rsu-ne's view of bus-17 turning right past its pole, H.264 and PNG frames, with the truth file."""
     if shutil.which("ffmpeg") is None:
         pytest.skip("ffmpeg not installed (make stream-tools installs it)")
     d = tmp_path_factory.mktemp("drive")
-    r = _toptag("sim", "record", "--out", d / "drive.mp4", "--rsu", "rsu-sw", "--start", "9.5", "--duration", "6",
+    r = _toptag("sim", "record", "--out", d / "drive.mp4", "--rsu", "rsu-ne", "--start", "42.5", "--duration", "6",
                 "--images", d / "frames")
     assert r.returncode == 0, r.stderr
     truth = json.loads((d / "drive.truth.json").read_text())
@@ -184,9 +184,9 @@ def test_rsu_serves_fixes_from_an_rtsp_stream_that_drops_and_comes_back(drive, r
     status: list[RsuStatus] = []
     subs = [subscribe_messages(session, keys.pose_fix("x1", keys.ANY, keys.ANY), PoseFix,
                                lambda m: fixes.append((time.time_ns(), m))),
-            subscribe_messages(session, keys.rsu_status("rsu-sw"), RsuStatus, status.append)]
+            subscribe_messages(session, keys.rsu_status("rsu-ne"), RsuStatus, status.append)]
     detections: list[TagDetections] = []
-    subs.append(subscribe_messages(session, keys.detections("rsu-sw"), TagDetections, detections.append))
+    subs.append(subscribe_messages(session, keys.detections("rsu-ne"), TagDetections, detections.append))
     vehicle = VehicleFile.model_validate(truth["vehicles"]["bus-17"])
     pub = MessagePublisher(session, keys.approach("x1", "bus-17"), Approach)
     stop = threading.Event()

@@ -150,7 +150,7 @@ def replay(world: World, frames, duration_s: float, settings: PipelineSettings |
                         p.report_position(bus, reported_position(c))
         if not in_session:
             continue
-        if r == 0:  # the buses with two tags in some camera's image, once for this frame
+        if r == 0:  # the buses with two tags decodable in some camera's image, once for this frame
             seen_now = {pv.vehicle.id for pv in world.vehicles_at(t) if in_some_view(world.cameras, pv)}
         for bus in in_session:
             samples += 1

@@ -44,6 +44,7 @@ from toptag.errors import InputError, report
 from toptag.inputs import validate_model
 from toptag.progress import Progress
 from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
+from toptag.rsu.regions import thinnest_cell_px
 from toptag.settings import read_settings
 from toptag.solvers.level import TURN_RATIO
 from toptag.units import NS_PER_MS, NS_PER_S
@@ -129,19 +130,6 @@ def view_correlation(per_rsu: list[np.ndarray]) -> dict:
         share, L, res = fit_view_correlation(np.repeat(mid, len(k)), rho[:, k].ravel(), np.repeat(n, len(k)))
         fits[name] = {"share": round(share, 3), "corr_m": L, "rms_residual": round(res, 3)}
     return {"pairs": int(len(d)), "pair_max_s": PAIR_MAX_S, "bins": bins, "fit": fits}
-
-
-def thinnest_cell_px(quad: np.ndarray) -> float:
-    """The smallest height of a tag cell in the image (px): each edge's distance to the opposite edge's
-    midpoint over the 8 cells of a tag's black square, the least of the four."""
-    out = []
-    for k in range(4):
-        a, b = quad[k], quad[(k + 1) % 4]
-        e = b - a
-        n = np.array([e[1], -e[0]]) / (np.linalg.norm(e) or 1.0)
-        opposite = 0.5 * (quad[(k + 2) % 4] + quad[(k + 3) % 4])
-        out.append(abs(float((opposite - a) @ n)) / 8.0)
-    return min(out)
 
 
 def error_stats(rows: np.ndarray) -> dict:

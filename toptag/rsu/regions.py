@@ -50,6 +50,22 @@ def projected_side_px(camera: Camera, corners_world: np.ndarray) -> float:
     return float(np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min())
 
 
+
+def thinnest_cell_px(quad: np.ndarray) -> float:
+    """The smallest height of a tag cell in the image (px), from the tag's four corners (px): each edge's
+    distance to the opposite edge's midpoint over the 8 cells of a tag's black square, the least of the
+    four. A grazing tag turned 45 degrees keeps long sides while its cells are a pixel tall: decoding
+    needs this, not the shortest side."""
+    out = []
+    for k in range(4):
+        a, b = quad[k], quad[(k + 1) % 4]
+        e = b - a
+        n = np.array([e[1], -e[0]]) / (np.linalg.norm(e) or 1.0)
+        opposite = 0.5 * (quad[(k + 2) % 4] + quad[(k + 3) % 4])
+        out.append(abs(float((opposite - a) @ n)) / 8.0)
+    return min(out)
+
+
 def tag_region(camera: Camera, vehicle: Vehicle, tag_id: int, x: float, y: float, yaw: float, z: float,
                pos_radius: float, yaw_margin: float, z_margin: float, pad_px: float = 4.0) -> Box | None:
     """Every pixel the tag's plate can cover for a pose within the given margins."""
