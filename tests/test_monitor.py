@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 
+import numpy as np
 import pytest
 from conftest import key_for, make_samples
 
@@ -59,9 +60,9 @@ def test_fused_ok_is_also_counted_where_a_camera_can_see_the_bus(zenoh_session):
     from sim.scenario import bundled_scenario_path, load_scenario
 
     views = ViewCoverage(load_scenario(bundled_scenario_path()))
-    assert views("bus-42", 5.0, -1.9, 0.0, None) is True  # the eastbound lane past the centre, two cameras
-    assert views("bus-42", 120.0, 0.0, 0.0, None) is False
-    assert views("bus-99", 0.0, 0.0, 0.0, None) is None  # not a bus of the scenario
+    # the eastbound lane past the centre (two cameras; roof at the bus's height), and far away
+    assert views("bus-42", [(5.0, -1.9, 0.0, np.nan), (120.0, 0.0, 0.0, 3.2)]).tolist() == [True, False]
+    assert views("bus-99", [(0.0, 0.0, 0.0, np.nan)]) is None  # not a bus of the scenario
     samples = make_samples()
     monitor = Monitor(zenoh_session("peer"), in_view=views)
     try:

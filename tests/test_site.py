@@ -159,3 +159,31 @@ def test_a_folder_without_site_json_is_one_line(tmp_path):
     (tmp_path / "site.json").write_text('{"rsus": [{"camera": "a.json"}]}')
     with pytest.raises(InputError, match=r"rsus\.0\.intersection: Field required"):
         load_site_file(Path(tmp_path))
+
+
+@pytest.mark.unit
+def test_many_poses_are_placed_in_the_views_as_one_at_a_time():
+    """in_some_view_many (the monitor's "in view" over seconds of poses at once) says what each pose's own
+    projection of every plate says (visible_tags, a tag at a time: whole in the image, and decodable), at
+    the views' edges too."""
+    import numpy as np
+
+    from sim.render import PlacedVehicle
+    from sim.sampling import DECODABLE_CELL_PX, in_some_view_many, visible_tags
+    from sim.scenario import load_scenario
+    from sim.world import World
+
+    world = World(load_scenario(bundled_scenario_path()))
+    rng = np.random.default_rng(7)
+    for bus in world.buses:
+        v = bus.vehicle
+        n = 1500
+        poses = np.c_[rng.uniform(-45, 45, n), rng.uniform(-45, 45, n), rng.uniform(-np.pi, np.pi, n),
+                      v.height + rng.uniform(-0.1, 0.1, n)]
+        poses[: n // 2, 1] = rng.uniform(-4, 4, n // 2)  # on the road through the views
+        for min_tags, min_cell_px in ((1, 0.0), (2, 0.0), (2, DECODABLE_CELL_PX)):
+            expected = [any(len(visible_tags(c, PlacedVehicle(v, *p), 2.0, min_cell_px)) >= min_tags
+                            for c in world.cameras) for p in poses]
+            got = in_some_view_many(world.cameras, v, poses, min_tags, 2.0, min_cell_px)
+            assert got.tolist() == expected
+            assert 0.05 < np.mean(expected) < 0.95  # both answers, many times

@@ -56,14 +56,20 @@ def thinnest_cell_px(quad: np.ndarray) -> float:
     distance to the opposite edge's midpoint over the 8 cells of a tag's black square, the least of the
     four. A grazing tag turned 45 degrees keeps long sides while its cells are a pixel tall: decoding
     needs this, not the shortest side."""
-    out = []
+    return float(thinnest_cell_px_many(quad)[0])
+
+
+def thinnest_cell_px_many(quads) -> np.ndarray:
+    """thinnest_cell_px of each of many tags' corners (M, 4, 2)."""
+    q = np.asarray(quads, dtype=float).reshape(-1, 4, 2)
+    out = np.full(len(q), np.inf)
     for k in range(4):
-        a, b = quad[k], quad[(k + 1) % 4]
-        e = b - a
-        n = np.array([e[1], -e[0]]) / (np.linalg.norm(e) or 1.0)
-        opposite = 0.5 * (quad[(k + 2) % 4] + quad[(k + 3) % 4])
-        out.append(abs(float((opposite - a) @ n)) / 8.0)
-    return min(out)
+        a, e = q[:, k], q[:, (k + 1) % 4] - q[:, k]
+        length = np.hypot(e[:, 0], e[:, 1])
+        length[length == 0] = 1.0
+        opposite = 0.5 * (q[:, (k + 2) % 4] + q[:, (k + 3) % 4]) - a
+        out = np.minimum(out, np.abs(opposite[:, 0] * e[:, 1] - opposite[:, 1] * e[:, 0]) / length / 8.0)
+    return out
 
 
 def tag_region(camera: Camera, vehicle: Vehicle, tag_id: int, x: float, y: float, yaw: float, z: float,
