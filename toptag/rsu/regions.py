@@ -50,7 +50,6 @@ def projected_side_px(camera: Camera, corners_world: np.ndarray) -> float:
     return float(np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min())
 
 
-
 def thinnest_cell_px(quad: np.ndarray) -> float:
     """The smallest height of a tag cell in the image (px), from the tag's four corners (px): each edge's
     distance to the opposite edge's midpoint over the 8 cells of a tag's black square, the least of the
