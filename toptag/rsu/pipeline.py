@@ -439,6 +439,7 @@ class RsuPipeline:
         all_jobs: list[DetectJob] = []
         found: list[list[RawDetection]] = []
         raw: list[RawDetection] = []
+        observed: dict = {}  # per vehicle, its tags among raw (as assigned after the last stage)
         t1 = t0  # the start of a stage's detection (the first's includes the whereabouts above)
         for stage in (steady, [vid for vid in tracked + hinted if vid not in steady]):
             if not stage:
@@ -462,9 +463,8 @@ class RsuPipeline:
                 done(vr)
             t1 = time.perf_counter()
             result.solve_ms += (t1 - t2) * 1e3
-        observed = assign_to_vehicles(_dedupe(raw), self.camera, list(self.vehicles.values()))
         t2 = time.perf_counter()
-        result.detect_ms += (t2 - t1) * 1e3
+        result.detect_ms += (t2 - t1) * 1e3  # without tracked or hinted buses: the whereabouts above
 
         # The others: searched for where they can be, if a search is due.
         due = bool(unfound) and self._search is None and self._acquisition_due(t_ns, bool(tracked))
