@@ -310,7 +310,7 @@ class BusAgent:
 def coarse_position(est, gnss: GnssFix | None, now_ns: int) -> CoarsePosition | None:
     """Where presence takes the bus to be: its filter's estimate at now_ns when healthy, else the latest
     GNSS fix (metres are enough here)."""
-    if est is not None and est.health.status == "ok":
+    if _presence_takes_fused(est):
         sigma = float(np.sqrt(max(est.cov[0, 0], est.cov[1, 1], 1e-6)))
         return CoarsePosition(t_ns=now_ns, x=est.x, y=est.y, sigma_m=sigma, source="fused")
     return gnss_position(gnss, now_ns)
@@ -318,9 +318,14 @@ def coarse_position(est, gnss: GnssFix | None, now_ns: int) -> CoarsePosition | 
 
 def presence_xy(est, gnss: GnssFix | None, now_ns: int) -> tuple[float, float] | None:
     """coarse_position's x, y, without the message: the step's presence needs no more, 50 times a second."""
-    if est is not None and est.health.status == "ok":
+    if _presence_takes_fused(est):
         return est.x, est.y
     return None if _gnss_too_old(gnss, now_ns) else (gnss.x, gnss.y)
+
+
+def _presence_takes_fused(est) -> bool:
+    """Presence takes the filter's pose only while it is healthy ("ok"), else the latest GNSS fix."""
+    return est is not None and est.health.status == "ok"
 
 
 def announced_position(est, gnss: GnssFix | None, wheel_speed: float | None, now_ns: int) -> CoarsePosition | None:
