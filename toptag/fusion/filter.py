@@ -331,6 +331,10 @@ class BusFilter:
         self._archived_src: dict[str, dict[str, int]] = {}
         self._archived_flagged = 0
         self._totals_memo: tuple[dict[str, int], int] | None = None  # _totals until an outcome changes
+        # The buffer's fixes by outcome and from flagged RSUs, kept as decisions change (not counted over the
+        # ~80 buffered fixes at every estimate after a fix)
+        self._buffered = count_outcomes([])
+        self._buffered_flagged = 0
         self._unknown_clock = 0
         self._imu_rejected = 0
         self._imu_count = 0
@@ -435,6 +439,7 @@ class BusFilter:
         self._fix_keys.insert(i, key)
         self._fix_t.insert(i, fix.t_ns)
         self._fix_recs.insert(i, rec)
+        self._buffered[rec.outcome._value_] += 1
         self._totals_memo = None
         self._seen.add((fix.source, "seq", fix.seq))
         self._seen.add((fix.source, "t", fix.t_ns))
@@ -489,12 +494,9 @@ class BusFilter:
         """Fix outcome counts and fixes from flagged RSUs: the archived ones plus the buffer's (not to be
         modified: kept until a fix is added, decided again or archived, as every estimate reads them)."""
         if self._totals_memo is None:
-            counts = dict(self._archived)
-            flagged = self._archived_flagged
-            for r in self._fix_recs:  # _value_: .value is a property
-                counts[r.outcome._value_] += 1
-                flagged += r.flagged
-            self._totals_memo = counts, flagged
+            buffered = self._buffered
+            self._totals_memo = ({k: n + buffered[k] for k, n in self._archived.items()},
+                                 self._archived_flagged + self._buffered_flagged)
         return self._totals_memo
 
     def counters(self) -> dict:
@@ -611,14 +613,50 @@ class BusFilter:
         return bisect_right(_StepTimes(self._steps), t_ns) - 1
 
     def _ensure_clean(self, upto: int | None = None):
-        n = len(self._steps)
+        steps = self._steps
+        n = len(steps)
         upto = n - 1 if upto is None else min(upto, n - 1)
         i = max(self._dirty, 1)
         while i <= upto:
-            cur = self._steps[i]
-            cur.x, cur.P, cur.g = self._imu_step(self._steps[i - 1], cur.t, cur.u)
+            j = self._fix_free_run(i, upto)
+            if j > i:
+                self._imu_steps(i, j)
+                i = j + 1
+                continue
+            cur = steps[i]
+            cur.x, cur.P, cur.g = self._imu_step(steps[i - 1], cur.t, cur.u)
             i += 1
         self._dirty = max(self._dirty, upto + 1)
+
+    def _fix_free_run(self, i: int, upto: int) -> int:
+        """The last step of the run from step i (to upto at most) with no buffered fix in it (i - 1: step i
+        has one)."""
+        steps = self._steps
+        lo = bisect_right(self._fix_t, steps[i - 1].t)
+        t_fix = self._fix_t[lo] if lo < len(self._fix_t) else None
+        j = i - 1
+        while j < upto and (t_fix is None or steps[j + 1].t < t_fix) and steps[j + 1].u is not None:
+            j += 1
+        return j
+
+    def _imu_steps(self, i: int, j: int):
+        """Steps i..j, none with a fix in it, re-computed in one compiled call (kernels.imu_steps: the same
+        arithmetic as _imu_step's, step by step)."""
+        steps = self._steps
+        prev = steps[i - 1]
+        g = prev.g
+        a = prev.u[1] if prev.u is not None else 0.0
+        t = prev.t
+        rows = []
+        for s in steps[i:j + 1]:
+            u = s.u
+            rows.append((s_from_ns(s.t - t), a, u[0], 0.0 if u[2] is None else u[2], u[2] is not None))
+            a, t = u[1], s.t
+        n = len(prev.x)
+        X, P = kernels.imu_steps(prev.x, prev.P, np.array(rows, dtype=float), self._q, len(g.clocks),
+                                 self._freeze_lo(g, n))
+        for k, s in enumerate(steps[i:j + 1]):
+            s.x, s.P, s.g = X[k], P[k], g
 
     def _prune(self):
         steps = self._steps
@@ -634,6 +672,8 @@ class BusFilter:
         m = bisect_right(self._fix_t, t0)
         for r in self._fix_recs[:m]:
             self._archive(r.fix, r.outcome, r.flagged)
+            self._buffered[r.outcome._value_] -= 1
+            self._buffered_flagged -= r.flagged
             self._seen.discard((r.fix.source, "seq", r.fix.seq))
             self._seen.discard((r.fix.source, "t", r.fix.t_ns))
         del self._fix_t[:m], self._fix_keys[:m], self._fix_recs[:m]
@@ -687,12 +727,16 @@ class BusFilter:
             if rec.fix.source not in g.biases and rec.bias_root is not None:
                 x, P, g = self._add_bias(x, P, g, rec.fix)
             xf, Pf = self._predict(x, P, s_from_ns(tf - t), a, g) if tf > t else (x, P)
-            xu, Pu, g, outcome, d2, flagged = self._apply_fix(xf, Pf, g, rec.fix, rec.arrival_ns, a, rec.bias_root)
+            xu, Pu, g, outcome, d2, flagged = self._apply_fix(xf, Pf, g, rec, a)
             if outcome.applied:  # split the interval at the fix; a refused fix leaves it whole
                 x, P, t = xu, Pu, tf
             if record:
+                if outcome is not rec.outcome or flagged != rec.flagged:
+                    self._buffered[rec.outcome._value_] -= 1  # _value_: .value is a property
+                    self._buffered[outcome._value_] += 1
+                    self._buffered_flagged += flagged - rec.flagged
+                    self._totals_memo = None
                 rec.outcome, rec.d2, rec.flagged = outcome, d2, flagged
-                self._totals_memo = None
         if t_to > t:
             x, P = self._predict(x, P, s_from_ns(t_to - t), a, g)
         return x, P, g
@@ -830,15 +874,15 @@ class BusFilter:
         return x, Pn, g._replace(biases=tuple(biases) + (fix.source,))
 
     # ------------------------------------------------------------------ gating
-    def _apply_fix(self, x, P, g: _Gate, fix: Fix, arrival_ns: int | None, accel: float,
-                   bias_root: np.ndarray | None):
-        """Gate one fix against the state at its capture time (its RSU's slot already in the state),
-        apply it if it passes, and show it to the drift detector; returns (x, P, gate, outcome, d2,
-        flagged: whether its RSU was flagged). bias_root: the fix's FixRecord.bias_root."""
+    def _apply_fix(self, x, P, g: _Gate, frec: FixRecord, accel: float):
+        """Gate one buffered fix against the state at its capture time (its RSU's slot already in the
+        state), apply it if it passes, and show it to the drift detector; returns (x, P, gate, outcome,
+        d2, flagged: whether its RSU was flagged)."""
+        fix = frec.fix
         rsu = fix.source
         n = len(x)
         i = STATE_DIM + g.clocks.index(rsu) if self._offsets else None
-        L = bias_root if rsu in g.biases else None
+        L = frec.bias_root if rsu in g.biases else None
         # The prediction (toptag.fusion.kernels.fix_model): the pose its offset before (offsets.pose_before)
         # plus L eps with a bias block. The drift detector sees the fix against the pose (nu_pose: its bias
         # not taken out: it weighs the calibration share as a bias of its own, toptag.fusion.trust, and a
@@ -846,12 +890,8 @@ class BusFilter:
         nu_pose, nu, H, PHt, HPHt, HPHt_pose, Hd = kernels.fix_model(
             x, P, fix.pose, -1 if i is None else i, float(accel),
             -1 if L is None else self._bias_index(g, rsu), _NO_BIAS_ROOT if L is None else L)
-        if i is not None:
-            off_cov = np.outer(Hd, Hd) * P[i, i]  # the offset's share of the prediction's covariance
-            off_var = np.diag(off_cov).copy()
-        else:
-            off_cov = None
-            off_var = np.zeros(3)
+        # the offset's share of the prediction's variance (of its covariance, Hd Hd' P[i, i]: _observe)
+        off_var = np.zeros(3) if i is None else Hd * Hd * P[i, i]
         R = fix.cov if L is None else fix.cov - fix.calib_cov  # with L eps a state: the fix's noise
         rec = g.rsus.get(rsu)
         flagged = rec is not None and rec.flagged
@@ -861,14 +901,14 @@ class BusFilter:
         # agree taught them.
         offset_before = None if i is None else (float(x[i]), float(P[i, i]))
         freeze = slice(STATE_DIM, n) if flagged and n > STATE_DIM else self._considered(g, n)
-        x, P, g2, outcome, d2 = self._gate(x, P, g, fix, arrival_ns, H, nu, R, PHt, HPHt, off_var, rec, freeze)
+        x, P, g2, outcome, d2 = self._gate(x, P, g, fix, frec.arrival_ns, H, nu, R, PHt, HPHt, off_var, rec, freeze)
         if outcome is FixOutcome.REACQUIRED:
             # The filter jumps to a consensus it had rejected: every RSU's evidence was gathered against
             # the track before the jump (this fix's too), and weighed against evidence after it, it would
             # pass for a disagreement between RSUs. The detector starts afresh (flags kept).
             g2 = g2._replace(rsus=MappingProxyType({k: r.restart() for k, r in g2.rsus.items()}))
         elif outcome is not FixOutcome.UNCONFIRMED and not (g.mode == ACQUIRING and not outcome.applied):
-            g2, flagged_now = self._observe(g2, fix, nu_pose, HPHt_pose, offset_before, off_cov)
+            g2, flagged_now = self._observe(g2, frec, nu_pose, HPHt_pose, offset_before, Hd)
             if flagged_now and not flagged:
                 x, P = self._distrust(x, P, i, g2.rsus[rsu], self._offset_prior(fix),
                                       None if L is None else self._bias_index(g2, rsu))
@@ -931,12 +971,14 @@ class BusFilter:
             return x, P, applied, FixOutcome.REACQUIRED, d2
         return x, P, g._replace(consecutive=g.consecutive + 1, cands=cands), FixOutcome.REJECTED_GATE, d2
 
-    def _observe(self, g: _Gate, fix: Fix, nu, HPHt, offset_before, off_cov) -> tuple[_Gate, bool]:
+    def _observe(self, g: _Gate, frec: FixRecord, nu, HPHt, offset_before, Hd) -> tuple[_Gate, bool]:
         """The drift detector takes the fix's innovation (against the filter before the update, with
         the fix's own covariance: a down-weighting does not hide the disagreement) while the filter
         is healthy; returns the gate and whether the RSU is flagged now. What every fix of the RSU
         shares is its constant bias (toptag.fusion.trust), not noise: the fix's calibration share, and
-        for a flagged RSU what its held time offset's uncertainty implies (`off_cov`: along the track)."""
+        for a flagged RSU what its held time offset's uncertainty implies (along the track: Hd Hd' times
+        its variance, offset_before[1]; Hd: the prediction's derivative by the offset)."""
+        fix = frec.fix
         rsu = fix.source
         rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None,
                                            calib_id=fix.calib_id)
@@ -953,7 +995,8 @@ class BusFilter:
             # A flagged RSU's offset is held at its prior: what that implies is a constant bias of its
             # fixes (else it could not clear). Unflagged, the offset is learnt from them, and no flag is
             # raised while it is uncertain (drift_max_offset_sigma_ms).
-            shares = [b for b in (calib, off_cov if rec.flagged else None) if b is not None]
+            off_cov = np.outer(Hd, Hd) * offset_before[1] if rec.flagged and offset_before is not None else None
+            shares = [b for b in (calib, off_cov) if b is not None]
             rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, S, sum(shares) if shares else None, R,
                                                (fix.x - nu[0], fix.y - nu[1]))
             sd = 0.0 if offset_before is None else math.sqrt(max(offset_before[1], 0.0))

@@ -43,9 +43,12 @@ class FixRecord:
     bias_root: np.ndarray | None = None  # L (L L' = fix.calib_cov) when the filter models its RSU's bias
 
 
+_APPLIED = tuple(o.value for o in FixOutcome if o.applied)
+
+
 def applied_count(counts: dict[str, int]) -> int:
     """How many of the counted fixes (outcome value -> count) the filter applied."""
-    return sum(counts.get(o.value, 0) for o in FixOutcome if o.applied)
+    return sum(counts.get(v, 0) for v in _APPLIED)
 
 
 def count_outcomes(outcomes) -> dict[str, int]:

@@ -86,6 +86,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -203,7 +204,8 @@ def _mean(info: tuple) -> tuple[np.ndarray, np.ndarray, float] | None:
 
 
 def _sqrtm(R: np.ndarray) -> np.ndarray:
-    """The symmetric square root of a covariance."""
+    """The symmetric square root of a covariance: numpy's form of what drift_accumulate takes of R
+    (toptag.fusion.kernels.sym_sqrt), kept as the reference its tests compare with."""
     w, V = np.linalg.eigh(R)
     return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
 
@@ -252,7 +254,7 @@ class DriftRule:
             rho = w * math.exp(-gap / self.view_corr_m)
         A, A2, b, Bs, sw, sw2, Q, H, stat, m, C, bias_c, ok = kernels.drift_accumulate(
             np.asarray(nu, dtype=float), np.asarray(S, dtype=float), _Z33 if B is None else np.asarray(B, dtype=float),
-            _Z33 if R is None else np.asarray(R, dtype=float), _sqrtm(R) if view else _Z33, self._floor,
+            _Z33 if R is None else np.asarray(R, dtype=float), self._floor,
             float(self.clip_d2),
             min(self.view_bias_share ** 2, MAX_VIEW_SHARE_OF_VARIANCE), view, first, w,
             *((_Z33, _Z33, _Z3, _Z33, 0.0, 0.0) if first else (rec.A, rec.A2, rec.b, rec.Bs, *rec.sums)),
@@ -291,7 +293,7 @@ class DriftRule:
             B = B + self.view_bias_share ** 2 * (Ai @ Q @ Ai)
         return B
 
-    @property
+    @cached_property  # asked at every fix; the rule is frozen
     def _floor(self) -> np.ndarray:
         """The smallest disagreement that counts as drift, as a covariance: the clip's scale is never
         below it. Clipped on the fix's own S alone, a precise RSU's innovations against a filter that a
