@@ -176,21 +176,45 @@ def test_every_command_parses_and_names_files_the_image_holds(compose, layout):
         assert m.get(sc.intersection_id)
 
 
-def test_dockerfile_installs_the_project_with_toptag_as_entry_point():
+def _dockerfile_instructions(text: str) -> list[str]:
+    """The Dockerfile's instructions, one a line: continuation lines joined as Docker joins them, comments out."""
+    lines, pending = [], ""
+    for raw in text.splitlines():
+        ln = raw.strip()
+        if not pending and (not ln or ln.startswith("#")):
+            continue
+        if ln.endswith("\\"):
+            pending += ln[:-1]
+            continue
+        lines.append(pending + ln)
+        pending = ""
+    return lines
+
+
+def test_dockerfile_installs_the_project_with_toptag_as_entry_point(tmp_path):
     import tomllib
 
-    text = topology.DOCKERFILE.read_text()
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    lines = _dockerfile_instructions(topology.DOCKERFILE.read_text())
     assert lines[:2] == ["ARG PYTHON_IMAGE=python:3.11-slim", "FROM ${PYTHON_IMAGE}"]  # official by default
     assert lines[-2] == 'ENTRYPOINT ["toptag"]'
-    installs = [ln for ln in lines if ln.startswith("RUN pip install")]
+    installs = [ln for ln in lines if ln.startswith("RUN") and "pip install" in ln]
     assert installs and all(" -e" not in ln and "--editable" not in ln for ln in installs)
-    assert any(re.match(r"RUN pip install \.(\s|$)", ln) for ln in installs)
     # everything `pip install .` needs is copied: pyproject.toml and every package it finds
-    copies = {ln.split()[1].rstrip("/") for ln in lines if ln.startswith("COPY ")}
+    copies = [ln.split()[1].rstrip("/") for ln in lines if ln.startswith("COPY ")]
     pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
     packages = {p.rstrip("*") for p in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]}
-    assert {"pyproject.toml"} | packages <= copies
+    assert {"pyproject.toml"} | packages <= set(copies)
+    # The dependencies are installed before any source is copied (a change of the sources rebuilds only the
+    # layers after it), and they are pyproject.toml's own, read from it by the build: no second list to keep.
+    deps = next(i for i, ln in enumerate(lines) if ln.startswith("RUN") and "pip install -r requirements.txt" in ln)
+    first_source = next(i for i, ln in enumerate(lines) if ln.startswith("COPY ") and ln.split()[1].rstrip("/") in packages)
+    assert deps < first_source and [ln for ln in lines[:deps] if ln.startswith("COPY ")] == ["COPY pyproject.toml ./"]
+    code = re.search(r"python -c '([^']*)' > requirements\.txt", lines[deps]).group(1)
+    shutil.copy(REPO / "pyproject.toml", tmp_path)
+    p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=30)
+    assert p.stdout.splitlines() == pyproject["build-system"]["requires"] + pyproject["project"]["dependencies"]
+    # then the project itself, with nothing more from PyPI (its build backend is among the dependencies above)
+    assert any(re.match(r"RUN pip install --no-deps --no-build-isolation \.(\s|$)", ln) for ln in installs[1:])
     assert pyproject["project"]["scripts"]["toptag"] == "toptag.cli:main"
     # The root .dockerignore (both builders read it) is an allow-list: everything out, then exactly what
     # the Dockerfile copies back in; a .venv, .git, outputs or certificates never enter the context.
