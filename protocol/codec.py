@@ -8,6 +8,22 @@
       offset 16 H bytes  UTF-8 JSON header (every Frame field but ``image``; same checks as any message)
       offset 16+H  N bytes  image
 
+- Imu (100 samples a second per bus; the bus agent's most frequent input): a fixed binary layout, read
+  with one struct.unpack (big endian):
+
+      offset 0   4 bytes  magic b"TTIM"
+      offset 4   uint8    protocol version
+      offset 5   uint8    flags: bit 0 wheel_speed present, bit 1 seq present (absent: 0 in its slot)
+      offset 6   uint64   t_ns
+      offset 14  7 x float64  gyro_x, gyro_y, gyro_z, accel_x, accel_y, accel_z, wheel_speed
+      offset 70  uint64   seq
+      offset 78  uint16   bus_id length L
+      offset 80  L bytes  bus_id, UTF-8
+
+  The decoder checks what pydantic would (version, flags, length, finite numbers, the id) and builds the
+  model without pydantic's validation: a JSON decode of an Imu cost ~60 us of CPU on the agent's
+  every-20-ms wake-up, cold (docs/architecture.md). Imu in JSON, as sent before this layout, still
+  decodes (recordings made before it replay).
 - Every other message: compact UTF-8 JSON from pydantic (``model_dump_json``).
 
 ``decode`` raises ProtocolError, whose str() is one line naming the problem (wrong version, malformed
@@ -16,13 +32,14 @@ JSON, missing field, bad frame prefix...) and whose ``reason`` is a short code f
 from __future__ import annotations
 
 import json
+import math
 import struct
 from typing import TypeVar
 
 from pydantic import ValidationError
 
 from protocol import keys as _keys
-from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, Frame, Message
+from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, Frame, Imu, Message, check_id
 from toptag.errors import ProtocolError
 from toptag.inputs import describe_validation_error
 
@@ -30,13 +47,21 @@ FRAME_MAGIC = b"TTFR"
 _FRAME_PREFIX = struct.Struct(">4sIQ")
 FRAME_PREFIX_SIZE = _FRAME_PREFIX.size  # 16
 MAX_FRAME_HEADER = 64 * 1024
+IMU_MAGIC = b"TTIM"
+_IMU = struct.Struct(">4sBBQ7dQH")
+IMU_FIXED_SIZE = _IMU.size  # 80, then the bus_id
+_IMU_WHEEL, _IMU_SEQ = 1, 2
+_IMU_FLOATS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "wheel_speed")
+_IMU_FIELDS = tuple(Imu.model_fields)
+# Messages with a binary layout, by magic (the first 4 bytes; JSON starts with '{').
+BINARY: dict[bytes, type[Message]] = {FRAME_MAGIC: Frame, IMU_MAGIC: Imu}
 WIRE = {"wire": True}  # validation context: version and type must be on the wire
 
 M = TypeVar("M", bound=Message)
 
 # reason codes
-R_EMPTY, R_UTF8, R_JSON, R_OBJECT, R_VERSION, R_TYPE, R_FIELD, R_FRAME, R_KEY = (
-    "empty", "utf8", "json", "not_object", "version", "type", "field", "frame", "key")
+R_EMPTY, R_UTF8, R_JSON, R_OBJECT, R_VERSION, R_TYPE, R_FIELD, R_FRAME, R_KEY, R_LAYOUT = (
+    "empty", "utf8", "json", "not_object", "version", "type", "field", "frame", "key", "layout")
 
 
 # A payload that is not a valid message of the expected type raises toptag.errors.ProtocolError.
@@ -53,6 +78,11 @@ def _as_bytes(payload) -> bytes | memoryview:
 
 # ---- encode -----------------------------------------------------------------------------------
 
+def is_binary(msg_type: type[Message]) -> bool:
+    """Whether ``msg_type`` goes on the wire in a binary layout (else JSON)."""
+    return msg_type in BINARY.values()
+
+
 def encode(msg: Message) -> bytes:
     """Serialise a message for the wire."""
     if not isinstance(msg, Message):
@@ -60,7 +90,28 @@ def encode(msg: Message) -> bytes:
     if isinstance(msg, Frame):
         header = msg.model_dump_json().encode()
         return b"".join((_FRAME_PREFIX.pack(FRAME_MAGIC, len(header), len(msg.image)), header, msg.image))
+    if isinstance(msg, Imu):
+        return _encode_imu(msg)
     return msg.model_dump_json().encode()
+
+
+def encode_as(msg: Message, like) -> bytes:
+    """``msg`` encoded in the form ``like`` (a payload of the same type) has: JSON for an Imu recorded before
+    its binary layout, so that a shifted replay sends what its recording's encoding says."""
+    if isinstance(msg, Imu) and bytes(_as_bytes(like)[:4]) != IMU_MAGIC:
+        return msg.model_dump_json().encode()
+    return encode(msg)
+
+
+def _encode_imu(m: Imu) -> bytes:
+    bus_id = m.bus_id.encode()
+    flags = (_IMU_WHEEL if m.wheel_speed is not None else 0) | (_IMU_SEQ if m.seq is not None else 0)
+    try:
+        head = _IMU.pack(IMU_MAGIC, PROTOCOL_VERSION, flags, m.t_ns, m.gyro_x, m.gyro_y, m.gyro_z, m.accel_x,
+                         m.accel_y, m.accel_z, m.wheel_speed or 0.0, m.seq or 0, len(bus_id))
+    except struct.error as e:  # t_ns or seq beyond 64 bits
+        raise ValueError(f"Imu: does not fit its binary layout: {e}") from None
+    return head + bus_id
 
 
 # ---- decode -----------------------------------------------------------------------------------
@@ -72,11 +123,14 @@ def decode(payload, expected_type: type[M], *, key: str | None = None) -> M:
     name = expected_type.__name__
     if expected_type is Frame:
         msg = _decode_frame(data)
+    elif expected_type is Imu and data[:4] == IMU_MAGIC:
+        msg = _decode_imu(data)
     else:
         if len(data) == 0:
             raise ProtocolError(f"{name}: empty payload", R_EMPTY, name)
-        if bytes(data[:4]) == FRAME_MAGIC:
-            raise ProtocolError(f"{name}: got a binary frame payload", R_TYPE, name)
+        other = BINARY.get(bytes(data[:4]))
+        if other is not None:
+            raise ProtocolError(f"{name}: got a binary {other.TYPE} payload", R_TYPE, name)
         if isinstance(data, memoryview):
             data = data.tobytes()
         try:
@@ -171,11 +225,53 @@ def _decode_frame(data) -> Frame:
         raise AssertionError("unreachable")
 
 
+def _decode_imu(data) -> Imu:
+    """An Imu from its binary layout, checked as pydantic would check it (ProtocolError otherwise)."""
+    n = len(data)
+    if n < IMU_FIXED_SIZE:
+        raise ProtocolError(f"Imu: binary payload of {n} bytes is shorter than the {IMU_FIXED_SIZE}-byte layout",
+                            R_LAYOUT, "Imu")
+    _, version, flags, t_ns, gx, gy, gz, ax, ay, az, wheel, seq, id_len = _IMU.unpack_from(data, 0)
+    if n != IMU_FIXED_SIZE + id_len:
+        raise ProtocolError(f"Imu: binary payload of {n} bytes, expected {IMU_FIXED_SIZE + id_len} "
+                            f"({IMU_FIXED_SIZE} and a {id_len}-byte bus_id)", R_LAYOUT, "Imu")
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(f"Imu: wrong protocol version {version} (this build speaks {PROTOCOL_VERSION})",
+                            R_VERSION, "Imu")
+    if flags & ~(_IMU_WHEEL | _IMU_SEQ):
+        raise ProtocolError(f"Imu: unknown flags 0x{flags:02x} in the binary layout", R_LAYOUT, "Imu")
+    if not math.isfinite(gx + gy + gz + ax + ay + az + wheel):  # one test: finite but for NaN, inf or overflow
+        for field, v in zip(_IMU_FLOATS, (gx, gy, gz, ax, ay, az, wheel)):
+            if not math.isfinite(v):
+                raise ProtocolError(f"Imu: {field}: must be a finite number, got {v}", R_FIELD, "Imu")
+    try:
+        bus_id = check_id(bytes(data[IMU_FIXED_SIZE:]).decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ProtocolError(f"Imu: bus_id is not UTF-8 (byte {e.start})", R_UTF8, "Imu") from None
+    except ValueError as e:
+        raise ProtocolError(f"Imu: bus_id: {e}", R_FIELD, "Imu") from None
+    # Every field checked above: the model is built as pydantic's model_construct builds it (without the
+    # loop over its fields: half the cold CPU of model_construct here).
+    msg = _new(Imu)
+    _setattr(msg, "__dict__", {
+        "version": version, "type": "imu", "bus_id": bus_id, "t_ns": t_ns, "gyro_x": gx, "gyro_y": gy,
+        "gyro_z": gz, "accel_x": ax, "accel_y": ay, "accel_z": az,
+        "wheel_speed": wheel if flags & _IMU_WHEEL else None, "seq": seq if flags & _IMU_SEQ else None})
+    _setattr(msg, "__pydantic_fields_set__", set(_IMU_FIELDS))
+    _setattr(msg, "__pydantic_extra__", None)
+    _setattr(msg, "__pydantic_private__", None)
+    return msg
+
+
+_new, _setattr = object.__new__, object.__setattr__
+
+
 def decode_any(payload) -> Message:
-    """Decode a payload of any toptag type (dispatch on the ``type`` field; frames by their magic)."""
+    """Decode a payload of any toptag type (dispatch on the ``type`` field; binary layouts by their magic)."""
     data = _as_bytes(payload)
-    if bytes(data[:4]) == FRAME_MAGIC:
-        return _decode_frame(data)
+    binary = BINARY.get(bytes(data[:4]))
+    if binary is not None:
+        return decode(data, binary)
     obj = _parse_object(data, "message")
     t = obj.get("type")
     cls = MESSAGE_TYPES.get(t) if isinstance(t, str) else None

@@ -7,7 +7,8 @@ the channel's metadata. A toptag message type gets a JSON schema generated from 
 (schema encoding ``jsonschema``, message encoding ``json``), so Foxglove and other MCAP tools open the
 file and show every field. Frames (binary: prefix, JSON header, image bytes; see protocol.codec) are
 left out unless --frames: their channel has message encoding ``toptag-frame`` and the schema of the
-header. Payloads are stored exactly as received (also those that are not valid toptag messages); the
+header. Imu samples (a fixed binary layout, protocol.codec) have message encoding ``toptag-imu`` and the
+schema of their fields; those recorded before that layout are JSON. Payloads are stored exactly as received (also those that are not valid toptag messages); the
 log time is the recorder's clock at reception, strictly increasing, so the file's log-time order is the
 order of reception. `toptag replay` plays it back; `toptag eval replay` re-runs the bus fusion on it.
 """
@@ -27,14 +28,15 @@ from pathlib import Path
 import zenoh
 from mcap.writer import CompressionType, Writer
 
-from protocol import keys
+from protocol import codec, keys
 from protocol.messages import MESSAGE_TYPES, Frame, Message
 from protocol.transport.runner import add_service_arguments, run_service
 
 log = logging.getLogger(__name__)
 
 PROFILE = "toptag"
-JSON_ENCODING, FRAME_ENCODING = "json", "toptag-frame"
+JSON_ENCODING, BINARY_ENCODING = "json", "toptag-{}"  # binary: toptag-frame, toptag-imu
+BINARY_BASE = "application/octet-stream"  # the Zenoh encoding of a binary layout (protocol.transport.encoding_for)
 META_ZENOH_ENCODING, META_TYPE = "zenoh_encoding", "toptag_type"
 # Kinds that are not put samples (liveliness tokens, session queries): never seen by a subscriber.
 _NOT_SAMPLES = ("alive", "sessions")
@@ -49,12 +51,23 @@ def message_type_of(encoding: str) -> type[Message] | None:
     return MESSAGE_TYPES.get(schema[len(prefix):]) if schema.startswith(prefix) else None
 
 
+def message_encoding(msg_type: type[Message], encoding: str) -> str:
+    """The MCAP message encoding of a toptag type sent with this Zenoh encoding: ``json``, or for a binary
+    layout (protocol.codec) ``toptag-<type>``. By the encoding, not the type: an Imu recorded before its
+    binary layout is JSON."""
+    return BINARY_ENCODING.format(msg_type.TYPE) if str(encoding).startswith(BINARY_BASE) else JSON_ENCODING
+
+
 def json_schema(msg_type: type[Message]) -> bytes:
     schema = msg_type.model_json_schema(mode="serialization")
     schema["$id"] = f"{keys.ROOT}/{msg_type.TYPE}"
     if msg_type is Frame:
         schema["description"] = ("Header of a toptag Frame; on the wire the header follows a 16-byte prefix and "
                                  "precedes the raw image bytes (see protocol.codec).")
+    elif codec.is_binary(msg_type):
+        schema["description"] = (f"The fields of a toptag {msg_type.__name__}; on the wire (message encoding "
+                                 f"{BINARY_ENCODING.format(msg_type.TYPE)}) a fixed binary layout: see protocol.codec. "
+                                 "Recorded before it: JSON (message encoding json).")
     return json.dumps(schema, sort_keys=True).encode()
 
 
@@ -111,7 +124,7 @@ class McapLog:
                 schema_id = self._writer.register_schema(f"{keys.ROOT}/{msg_type.TYPE}", "jsonschema",
                                                          json_schema(msg_type))
                 self._schemas[msg_type.TYPE] = schema_id
-        wire = FRAME_ENCODING if msg_type is Frame else (JSON_ENCODING if msg_type is not None else encoding)
+        wire = encoding if msg_type is None else message_encoding(msg_type, encoding)
         meta = {META_ZENOH_ENCODING: encoding}
         if msg_type is not None:
             meta[META_TYPE] = msg_type.TYPE

@@ -93,7 +93,7 @@ class Replayer:
         except ProtocolError:
             self.unshifted += 1  # recorded as received, bad payloads included: replayed as they were
             return m.payload
-        return codec.encode(shift_times(msg, self.offset_ns))
+        return codec.encode_as(shift_times(msg, self.offset_ns), m.payload)
 
     def run(self, duration: float | None = None) -> None:
         first_log = self._declare_all()

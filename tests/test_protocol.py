@@ -45,7 +45,7 @@ def test_round_trip(name):
     assert back == msg
     assert type(back) is type(msg)
     assert decode_any(payload) == msg
-    if not isinstance(msg, Frame):
+    if not codec.is_binary(type(msg)):
         obj = json.loads(payload)
         assert obj["version"] == PROTOCOL_VERSION and obj["type"] == type(msg).TYPE
         assert b'", "' not in payload and b'": ' not in payload and b", " not in payload  # compact JSON
@@ -151,6 +151,61 @@ def test_bad_frames_are_rejected(payload, reason, text):
         decode(payload, Frame)
     assert ei.value.reason == reason
     assert text in str(ei.value) and "\n" not in str(ei.value)
+
+
+IMU = Imu(bus_id="bus-42", t_ns=7, gyro_z=0.1, accel_x=-0.5, wheel_speed=4.0, seq=3)
+# The wire bytes of IMU, written out (protocol/codec.py's layout): magic, version, flags (wheel_speed and seq
+# present), t_ns, the seven floats, seq, the bus_id's length and the bus_id.
+IMU_BINARY = bytes.fromhex(
+    "5454494d" "01" "03" "0000000000000007" "0000000000000000" "0000000000000000" "3fb999999999999a"
+    "bfe0000000000000" "0000000000000000" "0000000000000000" "4010000000000000" "0000000000000003" "0006")
+IMU_BINARY += b"bus-42"
+# The same sample in JSON, as main (8acdd76) encoded it before the binary layout: recordings hold it.
+IMU_JSON = (b'{"version":1,"type":"imu","bus_id":"bus-42","t_ns":7,"gyro_x":0.0,"gyro_y":0.0,"gyro_z":0.1,'
+            b'"accel_x":-0.5,"accel_y":0.0,"accel_z":0.0,"wheel_speed":4.0,"seq":3}')
+
+
+def test_imu_has_a_fixed_binary_layout_and_its_json_form_still_decodes():
+    assert encode(IMU) == IMU_BINARY
+    for payload in (IMU_BINARY, IMU_JSON):
+        back = decode(payload, Imu, key=keys.imu("bus-42"))
+        assert back == IMU and decode_any(payload) == IMU and hash(back) == hash(IMU)
+        assert back.model_dump_json().encode() == IMU_JSON and encode(back) == IMU_BINARY
+        assert back.model_copy(update={"seq": 4}).seq == 4 and back.seq == 3
+        with pytest.raises(ValidationError, match="frozen"):
+            back.seq = 5  # type: ignore[misc]
+    bare = Imu(bus_id="b", t_ns=0, gyro_z=-0.0)  # optional fields absent: None again, not 0
+    assert decode(encode(bare), Imu) == bare and decode(encode(bare), Imu).wheel_speed is None
+    assert codec.encode_as(IMU, IMU_JSON) == IMU_JSON and codec.encode_as(IMU, IMU_BINARY) == IMU_BINARY
+    with pytest.raises(ProtocolError, match="PoseFix: got a binary imu payload"):
+        decode(IMU_BINARY, PoseFix)
+
+
+def _imu_with(offset: int, raw: bytes) -> bytes:
+    return IMU_BINARY[:offset] + raw + IMU_BINARY[offset + len(raw):]
+
+
+BAD_IMU = [
+    (IMU_BINARY[:40], "layout", "binary payload of 40 bytes is shorter than the 80-byte layout"),
+    (IMU_BINARY[:-1], "layout", "binary payload of 85 bytes, expected 86 (80 and a 6-byte bus_id)"),
+    (IMU_BINARY + b"\0", "layout", "binary payload of 87 bytes, expected 86"),
+    (_imu_with(4, b"\x02"), "version", "wrong protocol version 2 (this build speaks 1)"),
+    (_imu_with(5, b"\x07"), "layout", "unknown flags 0x07"),
+    (_imu_with(30, struct.pack(">d", math.nan)), "field", "gyro_z: must be a finite number, got nan"),
+    (_imu_with(62, struct.pack(">d", -math.inf)), "field", "wheel_speed: must be a finite number, got -inf"),
+    (_imu_with(80, b"bus/42"), "field", "bus_id: id 'bus/42' contains forbidden character(s) /"),
+    (_imu_with(80, b"\xffus-42"), "utf8", "bus_id is not UTF-8 (byte 0)"),
+    (_imu_with(78, b"\x00\x00")[:80], "field", "bus_id: id must not be empty"),
+    (encode(SAMPLES["Frame"]), "type", "got a binary frame payload"),
+]
+
+
+@pytest.mark.parametrize("payload,reason,text", BAD_IMU, ids=[b[2] for b in BAD_IMU])
+def test_bad_binary_imu_payloads_are_rejected_with_one_clear_line(payload, reason, text):
+    with pytest.raises(ProtocolError) as ei:
+        decode(payload, Imu)
+    assert ei.value.reason == reason and text in str(ei.value)
+    assert str(ei.value).startswith("Imu: ") and "\n" not in str(ei.value)
 
 
 def test_decode_accepts_zenoh_bytes_and_memoryview():

@@ -121,7 +121,7 @@ def test_recording_is_an_mcap_with_a_channel_per_key_and_schemas(recording):
             continue
         msg_type = type_of[key]
         assert ch.metadata["zenoh_encoding"] == str(encoding_for(msg_type))
-        assert ch.message_encoding == ("toptag-frame" if msg_type.TYPE == "frame" else "json")
+        assert ch.message_encoding == (f"toptag-{msg_type.TYPE}" if codec.is_binary(msg_type) else "json")
         schema = summary.schemas[ch.schema_id]
         assert schema.encoding == "jsonschema" and schema.name == f"toptag/v1/{msg_type.TYPE}"
         js = json.loads(schema.data)
@@ -207,3 +207,34 @@ def test_a_recording_cut_short_still_reads_up_to_its_last_complete_chunk(tmp_pat
     assert 0.5 * len(stream) < len(got) < len(stream)
     assert got == stream[:len(got)]
     assert {c.key for c in recording_channels(path)} == {k for k, _, _ in stream}
+
+
+def test_a_recording_made_before_imu_had_its_binary_layout_still_replays(tmp_path, launch, free_port, zenoh_session):
+    """Imu samples recorded in JSON (before protocol.codec's binary layout) read as Imu, are a JSON channel
+    in the file, and replay shifted to now as JSON, their recorded encoding, with every t_ns moved."""
+    from services.recording import McapLog, read_recording
+
+    path = tmp_path / "old.mcap"
+    out = McapLog(path)
+    imu = make_samples()["Imu"]
+    old = [imu.model_copy(update={"t_ns": imu.t_ns + i * 10_000_000, "seq": i}) for i in range(5)]
+    json_encoding = str(zenoh.Encoding.APPLICATION_JSON.with_schema("toptag/v1/imu"))
+    for m in old:
+        out.add(key_for(m), json_encoding, m.model_dump_json().encode())
+    out.close()
+    assert [codec.decode(r.payload, r.message_type) for r in read_recording(path)] == old
+    assert {c.message_encoding for c in _read_mcap_channels(path)} == {"json"}
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    col = Collector(zenoh_session("peer", listen=[ep]))
+    rep = launch(["-m", "toptag", "replay", str(path), "--connect", ep, "--shift-to-now", "--speed", "4"])
+    assert rep.proc.wait(60) == 0, rep.output()[-2000:]
+    assert wait_until(lambda: len(col.got) >= len(old), 5)
+    assert {e for _, e, _, _ in col.got} == {json_encoding} and all(p.startswith(b"{") for _, _, p, _ in col.got)
+    shifted = [codec.decode(p, Imu) for _, _, p, _ in col.got]
+    assert len({s.t_ns - o.t_ns for s, o in zip(shifted, old)}) == 1 and shifted[0].t_ns > old[0].t_ns
+
+
+def _read_mcap_channels(path):
+    with open(path, "rb") as f:
+        return list(make_reader(f).get_summary().channels.values())

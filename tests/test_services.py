@@ -1,13 +1,14 @@
 """The networked system with real processes over Zenoh: an RSU and a bus agent as subprocesses of a
 router, the test acting as camera (rendered frames) and as the bus's GNSS."""
+import struct
 import threading
 import time
 
 import numpy as np
 import pytest
 
-from protocol import keys
-from protocol.messages import Frame, GnssFix, PoseFix, RsuStatus
+from protocol import codec, keys
+from protocol.messages import Frame, GnssFix, Imu, PoseFix, RsuStatus
 from protocol.transport import MessagePublisher, subscribe_messages
 from sim.render import PlacedVehicle, render_jpeg
 from sim.scenario import bundled_scenario_path
@@ -202,8 +203,10 @@ def test_malformed_messages_on_every_key_are_counted_and_services_keep_working(s
     bus = system["start_bus"]()
     gnss.where = INSIDE
     assert wait_until(lambda: "bus-17" in watch.active() and watch.fixes, 60)
+    imu = codec.encode(Imu(bus_id="bus-17", t_ns=time.time_ns(), gyro_z=0.0, seq=1))  # a binary layout (codec)
     garbage = [b"", b"\x00\xff", b"{not json", b'{"version": 99, "type": "approach"}', b"[1, 2, 3]",
-               b'{"version": 1, "type": "pose_fix", "bus_id": "bus-17"}']
+               b'{"version": 1, "type": "pose_fix", "bus_id": "bus-17"}', imu[:-1],
+               imu[:14] + struct.pack(">d", float("nan")) + imu[22:]]
     targets = [keys.approach("x1", "bus-17"), keys.leave("x1", "bus-17"), keys.frame("rsu-sw"),
                keys.pose_fix("x1", "bus-17", "rsu-evil"), keys.imu("bus-17"), keys.gnss("bus-17")]
     rejected_before = watch.latest().messages_rejected
@@ -211,7 +214,7 @@ def test_malformed_messages_on_every_key_are_counted_and_services_keep_working(s
         for payload in garbage:
             session.put(key, payload)
     # A JPEG that does not decode, in an otherwise valid frame.
-    session.put(keys.frame("rsu-sw"), __import__("protocol").codec.encode(
+    session.put(keys.frame("rsu-sw"), codec.encode(
         Frame(rsu_id="rsu-sw", capture_time_ns=time.time_ns(), seq=10**6, encoding="jpeg", width=960, height=720,
               image=b"\xff\xd8garbage\xff\xd9")))
     assert wait_until(lambda: watch.latest().messages_rejected >= rejected_before + 3 * len(garbage), 60), \
@@ -220,6 +223,8 @@ def test_malformed_messages_on_every_key_are_counted_and_services_keep_working(s
     assert wait_until(lambda: len(watch.fixes) > n + 10, 60)  # the RSU goes on
     assert "bus-17" in watch.active() and bus.proc.poll() is None
     assert "rejected payload" in bus.output()  # the bus logged what it refused
+    assert "Imu: binary payload of 85 bytes, expected 86" in bus.output()
+    assert "Imu: gyro_x: must be a finite number, got nan" in bus.output()
     assert system["rsu"].proc.poll() is None
 
 

@@ -52,7 +52,8 @@ def qos_for(msg_type: type[Message]) -> Qos:
 
 
 def encoding_for(msg_type: type[Message]) -> zenoh.Encoding:
-    base = zenoh.Encoding.APPLICATION_OCTET_STREAM if msg_type is Frame else zenoh.Encoding.APPLICATION_JSON
+    binary = codec.is_binary(msg_type)
+    base = zenoh.Encoding.APPLICATION_OCTET_STREAM if binary else zenoh.Encoding.APPLICATION_JSON
     return base.with_schema(f"{keys.ROOT}/{msg_type.TYPE}")
 
 
