@@ -680,10 +680,12 @@ class BusFilter:
 
     def _archive(self, fix: Fix, outcome: FixOutcome, flagged: bool = False):
         self._totals_memo = None
-        self._archived[outcome.value] += 1
+        self._archived[outcome._value_] += 1  # _value_: .value is a property
         self._archived_flagged += flagged
-        d = self._archived_src.setdefault(fix.source, count_outcomes([]))
-        d[outcome.value] += 1
+        d = self._archived_src.get(fix.source)
+        if d is None:
+            d = self._archived_src[fix.source] = count_outcomes([])
+        d[outcome._value_] += 1
 
     def _count_now(self, fix: Fix, outcome: FixOutcome) -> FixOutcome:
         self._archive(fix, outcome)

@@ -430,14 +430,24 @@ def sym_sqrt(R):
     return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
 
 
+# drift_accumulate's record as one array (DA_LEN, 3, 3): its 3x3 sums and results, then a block of vectors whose
+# rows are b, m and (sw, sw2, stat). One array: boxing each of thirteen results cost more than the arithmetic.
+DA_A, DA_A2, DA_BS, DA_Q, DA_H, DA_C, DA_BIAS, DA_VEC = range(8)
+DA_LEN = 8
+
+
 @compiled
-def drift_accumulate(nu, S, B, R, floor, clip_d2, white_share2, view, first, w, A0, A20, b0, Bs0, sw0, sw20,
-                     view_first, Q0, H0, rho, bias_floor, view_share2):
+def drift_accumulate(nu, S, B, R, prev, floors, consts, w, rho, view, first, view_first):
     """toptag.fusion.trust.DriftRule.accumulate's arithmetic on 3x3 blocks (the same expressions in the
-    same order): the clipped innovation, its information added to the faded sums, the view-error terms
-    (rho: the fading of H by the time and the distance since the RSU's last fix), then the mean, its
-    covariance, the statistic and the bias covariance (DriftRule.bias_cov). Returns (A, A2, b, Bs, sw, sw2,
-    Q, H, stat, m, C, bias_c, ok); ok False where S or A is singular (np.linalg.inv raised there)."""
+    same order): the clipped innovation, its information added to the faded sums of `prev` (the record
+    before, DA_ layout; not read when first, nor its Q and H when view_first), the view-error terms (rho:
+    the fading of H by the time and the distance since the RSU's last fix), then the mean, its covariance,
+    the statistic and the bias covariance (DriftRule.bias_cov). floors: (the clip's floor, bias_floor);
+    consts: (clip_d2, the white share of R taken out of S, view_bias_share²). Returns (the record, DA_
+    layout; ok), ok False where S or A is singular (np.linalg.inv raised there)."""
+    floor, bias_floor = floors[0], floors[1]
+    clip_d2, white_share2, view_share2 = consts[0], consts[1], consts[2]
+    out = np.zeros((DA_LEN, 3, 3))
     d2 = chi2(nu, S + floor)
     if d2 > clip_d2:
         nu = nu * math.sqrt(clip_d2 / d2)
@@ -446,30 +456,33 @@ def drift_accumulate(nu, S, B, R, floor, clip_d2, white_share2, view, first, w, 
     Si, ok = _inverse(S)
     z3 = np.zeros((3, 3))
     if not ok:
-        return z3, z3, np.zeros(3), z3, 0.0, 0.0, z3, z3, 0.0, np.zeros(3), z3, z3, False
+        return out, False
     X = _matmul(Si, sym_sqrt(R)) if view else z3
     if first:
         A, A2, b, sw, sw2, Bs = Si, Si, _matvec(Si, nu), 1.0, 1.0, B
     else:
-        A, A2, b = w * A0 + Si, (w * w) * A20 + Si, w * b0 + _matvec(Si, nu)
-        sw, sw2, Bs = w * sw0 + 1.0, w * w * sw20 + 1.0, w * Bs0 + B
+        A, A2, b = w * prev[DA_A] + Si, (w * w) * prev[DA_A2] + Si, w * prev[DA_VEC, 0] + _matvec(Si, nu)
+        sw, sw2, Bs = w * prev[DA_VEC, 2, 0] + 1.0, w * w * prev[DA_VEC, 2, 1] + 1.0, w * prev[DA_BS] + B
     Q, H = z3, z3
     if view and view_first:
         Q, H = _matmul(X, X.T.copy()), X
     elif view:
-        Hp = rho * H0
+        Hp = rho * prev[DA_H]
         cross = _matmul(X, Hp.T.copy())
-        Q, H = (w * w) * Q0 + _matmul(X, X.T.copy()) + cross + cross.T.copy(), Hp + X
+        Q, H = (w * w) * prev[DA_Q] + _matmul(X, X.T.copy()) + cross + cross.T.copy(), Hp + X
     Ai, ok = _inverse(A)
     if not ok:
-        return z3, z3, np.zeros(3), z3, 0.0, 0.0, z3, z3, 0.0, np.zeros(3), z3, z3, False
+        return out, False
     stat = chi2(b, A2)
     m = _matvec(Ai, b)
     C = _matmul(_matmul(Ai, A2), Ai)
     Bc = Bs / sw + bias_floor
     if view:
         Bc = Bc + view_share2 * _matmul(_matmul(Ai, Q), Ai)
-    return A, A2, b, Bs, sw, sw2, Q, H, stat, m, C, Bc, True
+    out[DA_A], out[DA_A2], out[DA_BS], out[DA_Q], out[DA_H], out[DA_C], out[DA_BIAS] = A, A2, Bs, Q, H, C, Bc
+    out[DA_VEC, 0], out[DA_VEC, 1] = b, m
+    out[DA_VEC, 2, 0], out[DA_VEC, 2, 1], out[DA_VEC, 2, 2] = sw, sw2, stat
+    return out, True
 
 
 @compiled
@@ -519,9 +532,9 @@ def warm_up() -> None:
         mahalanobis(HPHt + np.eye(3), nu)
     pose_before(x2, 0.01, 0.1)
     e3, z3 = np.eye(3), np.zeros((3, 3))
+    prev, floors = np.zeros((DA_LEN, 3, 3)), np.stack((e3, e3))
     for view, first in ((True, True), (True, False), (False, True), (False, False)):
-        drift_accumulate(pose, e3, z3, e3, e3, 100.0, 0.5, view, first, 0.9, e3, e3, pose, z3, 1.0, 1.0,
-                         first, e3, e3, 0.8, e3, 0.5)
+        drift_accumulate(pose, e3, z3, e3, prev, floors, np.array([100.0, 0.5, 0.5]), 0.9, 0.8, view, first, first)
     drift_deviation(pose, e3, e3, np.zeros((2, 3)), np.zeros((2, 3, 3)), np.zeros((2, 3, 3)))
     sym_sqrt(e3)
 

@@ -99,7 +99,7 @@ CALIBRATE_CHECK = "toptag calibrate check --camera CAM.json --points POINTS.json
 # at least this share of R is kept white, so that S stays well conditioned whatever s is.
 MAX_VIEW_SHARE_OF_VARIANCE = 0.9
 _Z33 = np.zeros((3, 3))  # stand-ins for the compiled arithmetic's absent arguments (never written)
-_Z3 = np.zeros(3)
+_NO_RECORD = np.zeros((kernels.DA_LEN, 3, 3))
 
 
 class RsuRecord(NamedTuple):
@@ -145,6 +145,9 @@ class RsuRecord(NamedTuple):
     # DriftRule.bias_cov of this record, kept by accumulate (None: computed when asked): every decision
     # asks for every RSU's, each the inverse of a 3x3 (~13 per fix with four RSUs).
     bias_c: np.ndarray | None = None
+    # accumulate's results in one array (toptag.fusion.kernels.DA_ layout): A, A2, b, Bs, Q, H, m, C and bias_c
+    # are views of it, and the next accumulate takes it whole
+    block: np.ndarray | None = None
 
     @property
     def flagged(self) -> bool:
@@ -162,7 +165,8 @@ class RsuRecord(NamedTuple):
         keep_past=False: the earlier passes' deviations go too, and the long-run one."""
         past, baseline = (self.past, self.baseline) if keep_past else (None, None)
         rec = self._replace(A=None, A2=None, b=None, stat=0.0, n_eff=0.0, sums=(0.0, 0.0), m=None, C=None, Bs=None,
-                            bias_c=None, current=None, past=past, baseline=baseline, change=None, change_stat=0.0)
+                            bias_c=None, block=None, current=None, past=past, baseline=baseline, change=None,
+                            change_stat=0.0)
         return rec if self.flagged else rec._replace(deviation=None, deviation_stat=0.0, others_mean=None)
 
     def recalibrated(self, calib_id: str | None) -> RsuRecord:
@@ -201,6 +205,19 @@ def _mean(info: tuple) -> tuple[np.ndarray, np.ndarray, float] | None:
     except np.linalg.LinAlgError:
         return None
     return C @ info[1], C, info[2]
+
+
+def _block(rec: RsuRecord) -> np.ndarray:
+    """A record's sums as drift_accumulate takes them (kept by accumulate; built for a record made otherwise)."""
+    if rec.block is not None:
+        return rec.block
+    blk = np.zeros((kernels.DA_LEN, 3, 3))
+    blk[kernels.DA_A], blk[kernels.DA_A2], blk[kernels.DA_BS] = rec.A, rec.A2, rec.Bs
+    if rec.H is not None:
+        blk[kernels.DA_Q], blk[kernels.DA_H] = rec.Q, rec.H
+    blk[kernels.DA_VEC, 0] = rec.b
+    blk[kernels.DA_VEC, 2, :2] = rec.sums
+    return blk
 
 
 def _sqrtm(R: np.ndarray) -> np.ndarray:
@@ -252,19 +269,19 @@ class DriftRule:
         if view and not view_first:
             gap = 0.0 if rec.view_xy is None else math.hypot(xy[0] - rec.view_xy[0], xy[1] - rec.view_xy[1])
             rho = w * math.exp(-gap / self.view_corr_m)
-        A, A2, b, Bs, sw, sw2, Q, H, stat, m, C, bias_c, ok = kernels.drift_accumulate(
+        blk, ok = kernels.drift_accumulate(
             np.asarray(nu, dtype=float), np.asarray(S, dtype=float), _Z33 if B is None else np.asarray(B, dtype=float),
-            _Z33 if R is None else np.asarray(R, dtype=float), self._floor,
-            float(self.clip_d2),
-            min(self.view_bias_share ** 2, MAX_VIEW_SHARE_OF_VARIANCE), view, first, w,
-            *((_Z33, _Z33, _Z3, _Z33, 0.0, 0.0) if first else (rec.A, rec.A2, rec.b, rec.Bs, *rec.sums)),
-            view_first, _Z33 if view_first else rec.Q, _Z33 if view_first else rec.H, rho,
-            np.asarray(self.bias_floor, dtype=float), float(self.view_bias_share ** 2))
+            _Z33 if R is None else np.asarray(R, dtype=float), _NO_RECORD if first else _block(rec), self._floors,
+            self._consts, w, rho, view, first, view_first)
         if not ok:
             raise np.linalg.LinAlgError("singular innovation information in the drift detector")
-        return rec._replace(last_t=t_ns, A=A, A2=A2, b=b, stat=stat, n_eff=sw * sw / sw2, sums=(sw, sw2),
-                            m=m, C=C, Bs=Bs, Q=Q if view else None, H=H if view else None,
-                            view_xy=(float(xy[0]), float(xy[1])) if view else rec.view_xy, bias_c=bias_c)
+        sw, sw2, stat = (float(v) for v in blk[kernels.DA_VEC, 2])
+        return rec._replace(last_t=t_ns, A=blk[kernels.DA_A], A2=blk[kernels.DA_A2], b=blk[kernels.DA_VEC, 0],
+                            stat=stat, n_eff=sw * sw / sw2, sums=(sw, sw2), m=blk[kernels.DA_VEC, 1],
+                            C=blk[kernels.DA_C], Bs=blk[kernels.DA_BS], Q=blk[kernels.DA_Q] if view else None,
+                            H=blk[kernels.DA_H] if view else None,
+                            view_xy=(float(xy[0]), float(xy[1])) if view else rec.view_xy,
+                            bias_c=blk[kernels.DA_BIAS], block=blk)
 
     def carry(self, rec: RsuRecord) -> RsuRecord:
         """The record with its deviation from the others in this filter added to the earlier passes'
@@ -293,7 +310,16 @@ class DriftRule:
             B = B + self.view_bias_share ** 2 * (Ai @ Q @ Ai)
         return B
 
-    @cached_property  # asked at every fix; the rule is frozen
+    @cached_property  # the rule is frozen: accumulate's constants once
+    def _floors(self) -> np.ndarray:
+        return np.stack((self._floor, np.asarray(self.bias_floor, dtype=float)))
+
+    @cached_property
+    def _consts(self) -> np.ndarray:
+        return np.array([self.clip_d2, min(self.view_bias_share ** 2, MAX_VIEW_SHARE_OF_VARIANCE),
+                         self.view_bias_share ** 2], dtype=float)
+
+    @cached_property
     def _floor(self) -> np.ndarray:
         """The smallest disagreement that counts as drift, as a covariance: the clip's scale is never
         below it. Clipped on the fix's own S alone, a precise RSU's innovations against a filter that a
