@@ -984,7 +984,9 @@ class BusFilter:
         rsu = fix.source
         rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None,
                                            calib_id=fix.calib_id)
-        rec = rec._replace(clock_known=fix.clock_bound_ns is not None)
+        known = fix.clock_bound_ns is not None
+        if rec.clock_known != known:  # a NamedTuple copy only when it changes
+            rec = rec._replace(clock_known=known)
         if rec.calib_id != fix.calib_id:  # recalibrated: what was learnt of the old calibration goes
             rec = rec.recalibrated(fix.calib_id)
         rsus = dict(g.rsus)

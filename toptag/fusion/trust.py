@@ -275,7 +275,7 @@ class DriftRule:
             self._consts, w, rho, view, first, view_first)
         if not ok:
             raise np.linalg.LinAlgError("singular innovation information in the drift detector")
-        sw, sw2, stat = (float(v) for v in blk[kernels.DA_VEC, 2])
+        sw, sw2, stat = blk[kernels.DA_VEC, 2].tolist()
         return rec._replace(last_t=t_ns, A=blk[kernels.DA_A], A2=blk[kernels.DA_A2], b=blk[kernels.DA_VEC, 0],
                             stat=stat, n_eff=sw * sw / sw2, sums=(sw, sw2), m=blk[kernels.DA_VEC, 1],
                             C=blk[kernels.DA_C], Bs=blk[kernels.DA_BS], Q=blk[kernels.DA_Q] if view else None,
