@@ -17,6 +17,7 @@ from scipy.interpolate import RectBivariateSpline
 
 from sim.scene import LANE_WIDTH, ROAD_HALF_WIDTH
 from toptag.camera import Camera
+from toptag.lens import NEWTON_ITERATIONS, distort_points, undistort_points
 
 # Ground radiance, grey levels before the illumination gain.
 ASPHALT = 92.0
@@ -62,46 +63,6 @@ def raster_for(camera: Camera) -> "CameraRaster":
     return r
 
 
-# ---- lens model ---------------------------------------------------------------------------------
-def _dist_coeffs(camera: Camera) -> np.ndarray:
-    k = np.zeros(8)
-    d = camera.dist
-    k[: min(5, d.size)] = d[:5]
-    if d.size >= 8:
-        k[5:8] = d[5:8]
-    return k
-
-
-def _distort_with_jacobian(x, y, k):
-    """OpenCV's model as Camera.distort_normalized implements it, plus its analytic Jacobian."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = k
-    r2 = x * x + y * y
-    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    rad = num / den
-    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-    drad = (dnum * den - num * dden) / (den * den)  # d rad / d r2
-    xy = x * y
-    xd = x * rad + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
-    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
-    a = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-    b = 2 * xy * drad + 2 * p1 * x + 2 * p2 * y
-    c = 2 * xy * drad + 2 * p1 * x + 2 * p2 * y
-    d = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-    return xd, yd, a, b, c, d
-
-
-def _newton_undistort(xd, yd, x, y, k, iterations):
-    for _ in range(iterations):
-        fx, fy, a, b, c, d = _distort_with_jacobian(x, y, k)
-        ex, ey = fx - xd, fy - yd
-        det = a * d - b * c
-        x = x - (d * ex - b * ey) / det
-        y = y - (a * ey - c * ex) / det
-    return x, y
-
-
 def undistorted_grid(camera: Camera, rows: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact normalized coordinates (float64, (h, W)) of the pixel centres of `rows` (default all)."""
     H, W = camera.height, camera.width
@@ -115,9 +76,9 @@ def undistorted_grid(camera: Camera, rows: slice | None = None) -> tuple[np.ndar
     yd = np.broadcast_to(Ki[1, 1] * dv[:, None], xd.shape).copy()
     if not camera.has_distortion:
         return xd, yd
-    k = _dist_coeffs(camera)
-    x, y = _newton_undistort(xd, yd, xd.copy(), yd.copy(), k, 12)
-    return x, y
+    xy = np.column_stack([xd.ravel(), yd.ravel()])
+    x = undistort_points(xy, xy, camera.lens, NEWTON_ITERATIONS)
+    return x[:, 0].reshape(xd.shape), x[:, 1].reshape(xd.shape)
 
 
 def _undistorted_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +95,6 @@ def _undistorted_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     nc = camera.normalized(pix).reshape(len(vc), len(uc), 2)
     sx = RectBivariateSpline(vc, uc, nc[..., 0])
     sy = RectBivariateSpline(vc, uc, nc[..., 1])
-    k = _dist_coeffs(camera)
     Ki = np.linalg.inv(camera.K[:2, :2])
     u = np.arange(W, dtype=float)
     xs = np.empty((H, W), np.float32)
@@ -147,11 +107,11 @@ def _undistorted_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         dv = v - camera.K[1, 2]
         xd = Ki[0, 0] * du[None, :] + Ki[0, 1] * dv[:, None]
         yd = np.broadcast_to(Ki[1, 1] * dv[:, None], xd.shape)
-        x, y = _newton_undistort(xd, yd, sx(v, u), sy(v, u), k, 2)
-        fx, fy, *_ = _distort_with_jacobian(x, y, k)
-        worst = max(worst, float(np.max(np.abs(fx - xd))), float(np.max(np.abs(fy - yd))))
-        xs[r0:r1] = x
-        ys[r0:r1] = y
+        observed = np.column_stack([xd.ravel(), yd.ravel()])
+        x = undistort_points(observed, np.column_stack([sx(v, u).ravel(), sy(v, u).ravel()]), camera.lens, 2)
+        worst = max(worst, float(np.max(np.abs(distort_points(x, camera.lens) - observed))))
+        xs[r0:r1] = x[:, 0].reshape(xd.shape)
+        ys[r0:r1] = x[:, 1].reshape(xd.shape)
     if not worst < 1e-9:
         raise ValueError(f"camera {camera.id}: lens model not invertible over the image (residual {worst:.2g})")
     return xs, ys

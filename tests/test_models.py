@@ -30,13 +30,29 @@ def test_projection_matches_opencv_with_distortion():
     assert np.max(np.abs(cam.project(pts) - ref.reshape(-1, 2))) < 1e-9
 
 
-def test_undistort_inverts_distortion():
-    cam = rsu_camera("sw", 3200, 2400, dist=DIST)
+RATIONAL = [-0.31, 0.11, 0.0009, -0.0006, -0.015, 0.04, 0.008, 0.001]
+
+
+@pytest.mark.parametrize("dist", [DIST, RATIONAL], ids=["5 terms", "rational 8 terms"])
+def test_undistort_inverts_distortion(dist):
+    cam = rsu_camera("sw", 3200, 2400, dist=dist)
     rng = np.random.default_rng(2)
     ideal = rng.uniform([0, 0], [3199, 2399], size=(200, 2))
     xn = (ideal - cam.K[:2, 2]) / np.diag(cam.K)[:2]
     observed = cam.distort_normalized(xn) * np.diag(cam.K)[:2] + cam.K[:2, 2]
     assert np.max(np.abs(cam.undistort(observed) - ideal)) < 1e-6
+
+
+@pytest.mark.parametrize("dist", [DIST, RATIONAL], ids=["5 terms", "rational 8 terms"])
+def test_undistort_agrees_with_opencv(dist):
+    """The compiled Newton inverse (toptag.lens) against OpenCV's own iterative undistortion."""
+    import cv2
+
+    cam = rsu_camera("ne", 960, 720, dist=dist)
+    observed = np.random.default_rng(4).uniform([0, 0], [959, 719], size=(300, 2))
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+    ref = cv2.undistortPoints(observed.reshape(-1, 1, 2), cam.K, np.asarray(dist), None, None, None, criteria)
+    assert np.max(np.abs(cam.normalized(observed) - ref.reshape(-1, 2))) < 1e-9
 
 
 def test_backprojection_onto_plane_recovers_points():

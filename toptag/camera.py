@@ -24,6 +24,7 @@ from pydantic import (
 )
 
 from toptag.inputs import InputError, read_json, validate_model
+from toptag.lens import NEWTON_ITERATIONS, coefficients, undistort_points
 
 ROTATION_TOLERANCE = 1e-6
 
@@ -163,7 +164,9 @@ class Camera:
         self.R = np.asarray(R_wc, dtype=float).reshape(3, 3)
         self.t = np.asarray(T_wc, dtype=float).reshape(3)
         self.K_inv = np.linalg.inv(self.K)
+        self._focal_inv_T = np.linalg.inv(self.K[:2, :2]).T
         self.has_distortion = bool(np.any(d != 0.0))
+        self.lens = coefficients(d)  # the compiled lens kernels' form of dist
         self.calibration = calibration
         ext = calibration.extrinsics if calibration is not None else None
         self.extrinsic_covariance: np.ndarray | None = None if ext is None else np.asarray(ext.covariance, float)
@@ -264,23 +267,10 @@ class Camera:
     def normalized(self, pixels, distorted: bool = True) -> np.ndarray:
         """Pixels (N,2) to ideal normalized image coordinates (N,2), removing lens distortion."""
         uv = np.asarray(pixels, dtype=float).reshape(-1, 2)
-        xd = (uv - self.K[:2, 2]) @ np.linalg.inv(self.K[:2, :2]).T
+        xd = (uv - self.K[:2, 2]) @ self._focal_inv_T
         if not (distorted and self.has_distortion):
             return xd
-        x = xd.copy()
-        # Fixed-point start, then Newton with a numeric Jacobian: exact to ~1e-12 for real lenses.
-        for _ in range(8):
-            x = x + (xd - self.distort_normalized(x))
-        eps = 1e-7
-        for _ in range(4):
-            f0 = self.distort_normalized(x) - xd
-            jx = (self.distort_normalized(x + [eps, 0.0]) - self.distort_normalized(x)) / eps
-            jy = (self.distort_normalized(x + [0.0, eps]) - self.distort_normalized(x)) / eps
-            det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
-            dx = (jy[:, 1] * f0[:, 0] - jy[:, 0] * f0[:, 1]) / det
-            dy = (-jx[:, 1] * f0[:, 0] + jx[:, 0] * f0[:, 1]) / det
-            x = x - np.column_stack([dx, dy])
-        return x
+        return undistort_points(xd, xd, self.lens, NEWTON_ITERATIONS)
 
     def undistort(self, pixels) -> np.ndarray:
         """Observed pixels to the pixels an ideal (distortion-free) camera with the same K would see."""

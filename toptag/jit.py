@@ -1,7 +1,8 @@
-"""`compiled`: numba's njit as toptag's kernels use it (the solvers', toptag/solvers/kernels.py, and the bus
-filter's, toptag/fusion/kernels.py), and `solve_small`, the small dense solve both sets use, in a module of
-their own so that the filter's kernels do not import the solvers (and scipy) with them. `python -m
-toptag.solvers.warmup` fills the cache of both."""
+"""`compiled`: numba's njit as toptag's kernels use it (the solvers', toptag/solvers/kernels.py, the lens
+model's, toptag/lens.py, and the bus filter's, toptag/fusion/kernels.py), and `solve_small`, the small
+dense solve both the solvers and the filter use, in a module of their own so that the filter's kernels do
+not import the solvers (and scipy) with them. `python -m
+toptag.solvers.warmup` fills the cache of all."""
 from __future__ import annotations
 
 import math
