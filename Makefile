@@ -41,11 +41,11 @@ stream-tools:
 	  else echo "not root: $(STREAM_DEBS) not installed, the stream tests will skip"; fi; \
 	fi
 
-# Every test in one pytest run, spread over pytest-xdist workers (one per core). The system tests (the
-# demos, the deployment, the compose test: docker compose up for real, plain and secured, on a Docker
-# engine that docker-engine installs where missing, skipped with the reason where Docker cannot run) are
-# one xdist group: they run one after another on one worker, as each starts the whole system
-# (tests/tiers.py). test-compose runs the compose test alone.
+# Every test in one pytest run, spread over pytest-xdist workers (one per core and one more, see
+# tests/conftest.py). The system tests (the demos, the deployment, the compose test: docker compose up for
+# real, plain and secured, on a Docker engine that docker-engine installs where missing, skipped with the
+# reason where Docker cannot run) are one xdist group: they run one after another on one worker, as each
+# starts the whole system (tests/tiers.py). test-compose runs the compose test alone.
 # The run lists its 15 slowest tests: what to look at when it nears its 10-minute budget.
 test: setup docker-engine browser stream-tools
 	$(BIN)/python -m pytest -q --durations=15 -n auto --dist loadgroup

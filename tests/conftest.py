@@ -38,6 +38,18 @@ def pytest_configure(config):
         warm_up_renderer()
 
 
+def pytest_xdist_auto_num_workers(config):
+    """`-n auto` (make test): a worker per core, and one more for the system tests. They run one after
+    another on one worker (tests/tiers.py), which mostly waits while the whole system runs in its child
+    processes (the demo takes ~0.7 cores, README); with a worker per core the rest of the suite had the
+    other core only and the run left CPU unused: on 2 cores, the suite without its system tests used 1.08
+    cores on 2 workers (273 s) and 1.40 on 3 (228 s), load average 3.5-4.0 from the other engineers
+    (2026-11-24). PYTEST_XDIST_AUTO_NUM_WORKERS still sets the number (xdist's own hook reads it)."""
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
+        return None
+    return len(os.sched_getaffinity(0)) + 1
+
+
 def pytest_terminal_summary(terminalreporter, config):
     lines: dict[str, str] = {}
     for reports in terminalreporter.stats.values():
