@@ -8,7 +8,7 @@ import numpy as np
 
 def wrap_angle(a):
     """Wrap an angle (float) or an array of angles to (-pi, pi]."""
-    if np.ndim(a) == 0:  # the scalar path is hot (the filter wraps at every IMU step)
+    if type(a) is float or np.ndim(a) == 0:  # the scalar path is hot (the filter wraps at every IMU step)
         w = math.remainder(float(a), 2.0 * math.pi)  # in [-pi, pi]
         return math.pi if w == -math.pi else w
     w = np.mod(np.asarray(a, dtype=float) + np.pi, 2 * np.pi) - np.pi

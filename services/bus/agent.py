@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from protocol import keys
-from protocol.convert import assessment_to_message, clock_to_message, fix_from_message, fused_to_message
+from protocol.convert import assessment_to_message, clock_to_message, fix_from_message, fused_pose_payload
 from protocol.messages import (
     Approach,
     CoarsePosition,
@@ -77,6 +77,7 @@ DIAGNOSIS_KEEP_S = 30.0  # an RSU not heard from for this long is no longer asse
 # 10 s of IMU at 100 Hz, and of fixes from 4 RSUs at 10 Hz and more; a step that late meets an IMU gap anyway.
 # A step that finds one full counts it (counters "full", "dropped" by the IMU's seq) and logs it.
 IMU_QUEUE = 1024
+STOP_POLL_S = 0.1
 FIX_QUEUE = 512
 GNSS_QUEUE = 16
 
@@ -247,7 +248,7 @@ class BusAgent:
         if est is not None:  # the health counts every fix since the agent started, across filters
             if past_paths:
                 est = dataclasses.replace(est, health=est.health.plus_paths(past_paths))
-            self._fused_pub.put(fused_to_message(est, self.bus_id))
+            self._fused_pub.put_encoded(fused_pose_payload(est, self.bus_id))
         if time.monotonic() - self._last_diagnosis >= DIAGNOSIS_PERIOD_S:
             self._last_diagnosis = time.monotonic()
             self.publish_diagnoses(now_ns)
@@ -284,7 +285,11 @@ class BusAgent:
             except Exception as e:  # keep the agent alive; the next step retries
                 log.exception("bus step failed: %s", e)
             next_t += self.fused_period
-            self._stop.wait(max(0.0, next_t - time.monotonic()))
+            # time.sleep, not self._stop.wait: a timed Event.wait runs Python's Condition code (a lock made,
+            # taken, released) around each of the 50 wake-ups a second, cold every time; stop() is seen within
+            # a period (or STOP_POLL_S).
+            while (left := next_t - time.monotonic()) > 0 and not self._stop.is_set():
+                time.sleep(min(left, STOP_POLL_S))
 
     def stop(self) -> None:
         self._stop.set()
