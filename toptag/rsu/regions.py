@@ -129,14 +129,19 @@ def _tag_sizes_by_row(camera: Camera, roof_z: float, tag_size: float):
     reach = np.zeros(rows.size)
     half = tag_size / 2
     square = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]])
-    for r in np.flatnonzero(np.all(np.isfinite(ground), axis=1)):
-        for yaw in (0.0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2):
-            c, s = np.cos(yaw), np.sin(yaw)
-            uv = camera.project(square @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + ground[r], distort=False)
-            shortest = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min()
-            side[r] = shortest if side[r] == 0 else min(side[r], shortest)
-            extent[r] = max(extent[r], np.ptp(uv[:, 1]))
-            reach[r] = max(reach[r], np.ptp(uv, axis=0).max())
+    seen = np.flatnonzero(np.all(np.isfinite(ground), axis=1))
+    if seen.size:
+        yaws = np.array([0.0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2])
+        c, s = np.cos(yaws), np.sin(yaws)
+        turns = np.zeros((yaws.size, 3, 3))
+        turns[:, 0, 0], turns[:, 0, 1], turns[:, 1, 0], turns[:, 1, 1], turns[:, 2, 2] = c, s, -s, c, 1.0
+        # every seen row's square at every yaw in one projection (a row and yaw at a time cost ~80 ms)
+        corners = (square @ turns)[None, :, :, :] + ground[seen][:, None, None, :]  # (rows, yaws, 4, 3)
+        uv = camera.project(corners.reshape(-1, 3), distort=False).reshape(seen.size, yaws.size, 4, 2)
+        sides = np.linalg.norm(np.roll(uv, -1, axis=2) - uv, axis=3).min(axis=2)  # (rows, yaws)
+        side[seen] = sides.min(axis=1)
+        extent[seen] = np.ptp(uv[..., 1], axis=2).max(axis=1)
+        reach[seen] = np.ptp(uv, axis=2).max(axis=(1, 2))
     every_row = np.arange(camera.height)
     return (np.interp(every_row, rows, side), np.interp(every_row, rows, extent),
             np.interp(every_row, rows, reach))
