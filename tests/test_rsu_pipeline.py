@@ -652,3 +652,16 @@ def test_a_steadily_tracked_buses_fix_does_not_wait_for_another_buses_wide_crops
     res = p.process(img, t_ns, on_vehicle=lambda vr: events.append((vr.vehicle_id, vr.mode, vr.fix is not None)))
     assert events == ["crops", (bus.id, "tracked", True), "crops", (other.id, "searching", False)]
     assert res.vehicles[other.id].regions > 0
+
+
+def test_bench_rsu_takes_jpeg_frames_of_a_real_lens_and_times_their_decode_apart():
+    """`toptag bench rsu` feeds the pipeline what the simulator sends (JPEG, a distorted lens), decoded in the
+    frame's processing, and reports the pipeline's time with and without that decode."""
+    from services.rsu.bench import run
+
+    r = run(640, 480, frames=20)
+    assert r["frames_with_tags_in_view"] >= 5 and r["detect_rate_tracked"] >= 0.9
+    assert r["decode_ms_p50"] > 0
+    assert r["tracked_with_decode_ms_p50"] > r["tracked_ms_p50"] > 0
+    assert r["acquire_with_decode_ms_p50"] > r["acquire_ms_p50"] > 0
+    assert "JPEG" in r["frame"] and "-0.12" in r["frame"]
