@@ -77,9 +77,9 @@ DIAGNOSIS_KEEP_S = 30.0  # an RSU not heard from for this long is no longer asse
 # 10 s of IMU at 100 Hz, and of fixes from 4 RSUs at 10 Hz and more; a step that late meets an IMU gap anyway.
 # A step that finds one full counts it (counters "full", "dropped" by the IMU's seq) and logs it.
 IMU_QUEUE = 1024
-STOP_POLL_S = 0.1
 FIX_QUEUE = 512
 GNSS_QUEUE = 16
+STOP_POLL_S = 0.1  # the step loop sleeps at most this long at a time, so that stop() is seen
 
 
 def _FIX_ORDER(m: PoseFix) -> int:
