@@ -17,7 +17,7 @@ from scipy.interpolate import RectBivariateSpline
 
 from sim.scene import LANE_WIDTH, ROAD_HALF_WIDTH
 from toptag.camera import Camera
-from toptag.lens import NEWTON_ITERATIONS, distort_points, undistort_points
+from toptag.lens import NEWTON_ITERATIONS, distort_normalized, undistort_normalized
 
 # Ground radiance, grey levels before the illumination gain.
 ASPHALT = 92.0
@@ -77,7 +77,7 @@ def undistorted_grid(camera: Camera, rows: slice | None = None) -> tuple[np.ndar
     if not camera.has_distortion:
         return xd, yd
     xy = np.column_stack([xd.ravel(), yd.ravel()])
-    x = undistort_points(xy, xy, camera.lens, NEWTON_ITERATIONS)
+    x = undistort_normalized(xy, xy, camera.lens, NEWTON_ITERATIONS)
     return x[:, 0].reshape(xd.shape), x[:, 1].reshape(xd.shape)
 
 
@@ -108,8 +108,8 @@ def _undistorted_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         xd = Ki[0, 0] * du[None, :] + Ki[0, 1] * dv[:, None]
         yd = np.broadcast_to(Ki[1, 1] * dv[:, None], xd.shape)
         observed = np.column_stack([xd.ravel(), yd.ravel()])
-        x = undistort_points(observed, np.column_stack([sx(v, u).ravel(), sy(v, u).ravel()]), camera.lens, 2)
-        worst = max(worst, float(np.max(np.abs(distort_points(x, camera.lens) - observed))))
+        x = undistort_normalized(observed, np.column_stack([sx(v, u).ravel(), sy(v, u).ravel()]), camera.lens, 2)
+        worst = max(worst, float(np.max(np.abs(distort_normalized(x, camera.lens) - observed))))
         xs[r0:r1] = x[:, 0].reshape(xd.shape)
         ys[r0:r1] = x[:, 1].reshape(xd.shape)
     if not worst < 1e-9:

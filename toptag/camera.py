@@ -24,7 +24,7 @@ from pydantic import (
 )
 
 from toptag.inputs import InputError, read_json, validate_model
-from toptag.lens import NEWTON_ITERATIONS, coefficients, undistort_points
+from toptag.lens import NEWTON_ITERATIONS, coefficients, undistort_normalized
 
 ROTATION_TOLERANCE = 1e-6
 
@@ -270,7 +270,7 @@ class Camera:
         xd = (uv - self.K[:2, 2]) @ self._focal_inv_T
         if not (distorted and self.has_distortion):
             return xd
-        return undistort_points(xd, xd, self.lens, NEWTON_ITERATIONS)
+        return undistort_normalized(xd, xd, self.lens, NEWTON_ITERATIONS)
 
     def undistort(self, pixels) -> np.ndarray:
         """Observed pixels to the pixels an ideal (distortion-free) camera with the same K would see."""

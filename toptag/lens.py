@@ -43,7 +43,7 @@ def distort_with_jacobian(x, y, k):
 
 
 @compiled
-def undistort_points(xd, start, k, iterations):
+def undistort_normalized(xd, start, k, iterations):
     """The undistorted normalized points (N, 2) whose distortion is xd (N, 2), by `iterations` Newton steps
     from `start` (N, 2)."""
     out = np.empty_like(xd)
@@ -60,7 +60,7 @@ def undistort_points(xd, start, k, iterations):
 
 
 @compiled
-def distort_points(x, k):
+def distort_normalized(x, k):
     """The distorted normalized points (N, 2) of x (N, 2)."""
     out = np.empty_like(x)
     for i in range(x.shape[0]):
@@ -72,5 +72,5 @@ def warm_up() -> None:
     """Compile the kernels (or load them from numba's cache) for the arrays the camera model passes."""
     k = coefficients(np.array([-0.1, 0.01, 0.001, 0.001, 0.0]))
     x = np.zeros((1, 2))
-    undistort_points(x, x, k, NEWTON_ITERATIONS)
-    distort_points(x, k)
+    undistort_normalized(x, x, k, NEWTON_ITERATIONS)
+    distort_normalized(x, k)
