@@ -24,7 +24,7 @@ from pydantic import (
 )
 
 from toptag.inputs import InputError, read_json, validate_model
-from toptag.lens import NEWTON_ITERATIONS, coefficients, undistort_normalized
+from toptag.lens import NEWTON_ITERATIONS, coefficients, distort_normalized, undistort_normalized
 
 ROTATION_TOLERANCE = 1e-6
 
@@ -251,18 +251,9 @@ class Camera:
         return xn @ self.K[:2, :2].T + self.K[:2, 2]
 
     def distort_normalized(self, xn: np.ndarray) -> np.ndarray:
-        k = np.zeros(5)
-        k[: min(5, self.dist.size)] = self.dist[:5]
-        k1, k2, p1, p2, k3 = k
-        x, y = xn[:, 0], xn[:, 1]
-        r2 = x * x + y * y
-        radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
-        if self.dist.size >= 8:
-            k4, k5, k6 = self.dist[5:8]
-            radial = radial / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3)
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.column_stack([xd, yd])
+        """Ideal normalized points (N,2) to distorted ones: the lens kernel that the undistortion inverts,
+        so that projecting and undistorting share one model of the lens to the bit."""
+        return distort_normalized(np.ascontiguousarray(xn, dtype=float).reshape(-1, 2), self.lens)
 
     def normalized(self, pixels, distorted: bool = True) -> np.ndarray:
         """Pixels (N,2) to ideal normalized image coordinates (N,2), removing lens distortion."""

@@ -1,6 +1,7 @@
 """OpenCV's lens distortion (k1 k2 p1 p2 k3, and the rational k4 k5 k6 when given) in normalized image
 coordinates, with its analytic Jacobian, and its inverse by Newton's method: the camera model's
-(toptag.camera.Camera) arithmetic, compiled. The RSU undistorts every detected tag's corners on every
+(toptag.camera.Camera) one home of the lens, compiled: its projection distorts with these kernels and its
+undistortion inverts the same arithmetic. The RSU undistorts every detected tag's corners on every
 frame (in numpy, twelve iterations of a dozen small array operations cost ~1 ms a tag, more than the
 solve), and the renderer every pixel of a camera once (sim/raster.py)."""
 from __future__ import annotations
