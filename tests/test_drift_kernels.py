@@ -2,6 +2,7 @@
 what its numpy expressions gave (kept here as they stood in toptag.fusion.trust before it was compiled),
 to rounding, on random innovations with and without the view-dependent error and the calibration bias."""
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -111,3 +112,21 @@ def test_compiled_drift_arithmetic_matches_numpy(view_share):
             assert T_d == pytest.approx(_chi2(got.m - mo, Cn + Cb), rel=1e-9)
             recs[rsu] = rule.decide(recs, rsu, t)
     assert all(recs[r].deviation is not None for r in "abcd")  # every RSU was compared with the others
+
+
+def test_compiled_hypot_is_pythons():
+    """drift_accumulate's distance between views takes kernels.py_hypot: CPython 3.11's math.hypot, bit for bit
+    there (the C library's hypot, numba's math.hypot, differs in the last bit for ~0.2 % of arguments), so the
+    detector's numbers are those its Python computed; within an ulp on another CPython."""
+    from toptag.fusion.kernels import py_hypot
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=20_000) * 10.0 ** rng.uniform(-6, 3, 20_000)
+    b = rng.normal(size=20_000) * 10.0 ** rng.uniform(-6, 3, 20_000)
+    b[::7] = a[::7] * 1e-9
+    b[::11] = 0.0
+    exact = sys.version_info[:2] == (3, 11)
+    for x, y in zip(a.tolist(), b.tolist()):
+        want, got = math.hypot(x, y), py_hypot(x, y)
+        assert got == want if exact else abs(got - want) <= math.ulp(want), (x, y)
+    assert py_hypot(0.0, -0.0) == 0.0 and py_hypot(-3.0, 4.0) == 5.0
+    assert py_hypot(math.inf, math.nan) == math.inf and math.isnan(py_hypot(1.0, math.nan))

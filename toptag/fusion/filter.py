@@ -86,6 +86,9 @@ _MODE_NAMES = {ACQUIRING: "acquiring", TRACKING: "tracking"}
 _EYES: dict[int, np.ndarray] = {}
 _NO_RSUS = MappingProxyType({})
 _NO_BIAS_ROOT = np.zeros((BIAS_DIM, BIAS_DIM))  # kernels.fix_model's L without a bias block
+_Z33 = np.zeros((3, 3))  # kernels.fix_step's B without a bias share
+_NO_RECORD = np.zeros((kernels.DA_LEN, 3, 3))  # ... and its drift arguments without the detector
+_NO_FLOORS, _NO_CONSTS = np.zeros((2, 3, 3)), np.zeros(4)
 
 
 def _eye(n: int) -> np.ndarray:
@@ -471,7 +474,7 @@ class BusFilter:
         if t_ns == base.t:
             x, P, g = base.x, base.P, base.g
         else:
-            x, P, g = self._advance(base.x, base.P, base.g, base.t, base.u, t_ns, record=False)
+            x, P, g, _ = self._advance(base.x, base.P, base.g, base.t, base.u, t_ns, record=False)
             if base is head:
                 P = self._unmeasured_motion(x, P, s_from_ns(t_ns - base.t))
             else:
@@ -707,7 +710,9 @@ class BusFilter:
                 x, P = kernels.imu_step(prev.x, prev.P, dt, a, self._q, len(g.clocks), True, u[0],
                                         0.0 if u[2] is None else u[2], u[2] is not None, self._freeze_lo(g, n))
             return x, P, g
-        x, P, g = self._advance(prev.x, prev.P, g, prev.t, prev.u, t_ns, record=True)
+        x, P, g, ended = self._advance(prev.x, prev.P, g, prev.t, prev.u, t_ns, record=True, step=(dt, u))
+        if ended:
+            return x, P, g
         if u is None:
             return x, self._yaw_rate_noise(P, dt), g
         n = len(x)
@@ -715,12 +720,15 @@ class BusFilter:
                                   self._freeze_lo(g, n))
         return x, P, g
 
-    def _advance(self, x, P, g, t_from: int, u, t_to: int, record: bool):
-        """From the state at t_from to t_to, applying every buffered fix in (t_from, t_to]."""
+    def _advance(self, x, P, g, t_from: int, u, t_to: int, record: bool, step=None):
+        """From the state at t_from to t_to, applying every buffered fix in (t_from, t_to]; (x, P, gate,
+        ended). step: (dt, the IMU input) of the step ending at t_to, whose end (the IMU update) the last
+        fix's compiled call may take too (ended: it did)."""
         a = u[1] if u is not None else 0.0
         lo = bisect_right(self._fix_t, t_from)
         hi = bisect_right(self._fix_t, t_to)
         t = t_from
+        ended = False
         for j in range(lo, hi):
             rec = self._fix_recs[j]
             tf = rec.fix.t_ns
@@ -728,10 +736,14 @@ class BusFilter:
                 x, P, g = self._add_slot(x, P, g, rec.fix)
             if rec.fix.source not in g.biases and rec.bias_root is not None:
                 x, P, g = self._add_bias(x, P, g, rec.fix)
-            xf, Pf = self._predict(x, P, s_from_ns(tf - t), a, g) if tf > t else (x, P)
-            xu, Pu, g, outcome, d2, flagged = self._apply_fix(xf, Pf, g, rec, a)
+            fast = self._fix_step(x, P, g, rec, a, t, t_to if j == hi - 1 else None, step)
+            if fast is None:
+                xf, Pf = self._predict(x, P, s_from_ns(tf - t), a, g) if tf > t else (x, P)
+                xu, Pu, g, outcome, d2, flagged = self._apply_fix(xf, Pf, g, rec, a)
+            else:
+                xu, Pu, g, outcome, d2, flagged, ended = fast
             if outcome.applied:  # split the interval at the fix; a refused fix leaves it whole
-                x, P, t = xu, Pu, tf
+                x, P, t = xu, Pu, (t_to if ended else tf)
             if record:
                 if outcome is not rec.outcome or flagged != rec.flagged:
                     self._buffered[rec.outcome._value_] -= 1  # _value_: .value is a property
@@ -741,7 +753,7 @@ class BusFilter:
                 rec.outcome, rec.d2, rec.flagged = outcome, d2, flagged
         if t_to > t:
             x, P = self._predict(x, P, s_from_ns(t_to - t), a, g)
-        return x, P, g
+        return x, P, g, ended
 
     def _predict(self, x, P, dt: float, a: float, g: _Gate):
         """(x, P) dt seconds on: constant forward acceleration a and yaw rate, midpoint heading; the time
@@ -876,6 +888,69 @@ class BusFilter:
         return x, Pn, g._replace(biases=tuple(biases) + (fix.source,))
 
     # ------------------------------------------------------------------ gating
+    def _fix_step(self, x, P, g: _Gate, frec: FixRecord, accel: float, t: int, t_end: int | None, step):
+        """A trusted RSU's fix while tracking (nearly every fix) in one compiled call
+        (toptag.fusion.kernels.fix_step) from the state at t: the prediction to it, _apply_fix's model, _gate's
+        capped gate and update and _observe's drift arithmetic, and with t_end (the step's end, no fix after
+        this one before it) the rest of the step (step: its dt and IMU input). Returns _advance's (x, P, gate,
+        outcome, d2, flagged, ended), or None where _apply_fix decides: another mode, a flagged RSU, a gate
+        that does not pass (consensus), an RSU flagged now (_distrust); the same arithmetic in steps there
+        gives the same numbers."""
+        fix = frec.fix
+        rsu = fix.source
+        rec = g.rsus.get(rsu)
+        if g.mode != TRACKING or self._gate_thr == math.inf or (rec is not None and rec.flagged):
+            return None
+        n = len(x)
+        i = STATE_DIM + g.clocks.index(rsu) if self._offsets else -1
+        L = frec.bias_root if rsu in g.biases else None
+        R, R_drift = self._noise(fix, L is not None)
+        dt_imu, u = step if step is not None else (0.0, None)
+        has_u = t_end is not None and u is not None
+        drift = self._drift
+        if drift is not None and self._healthy_ns >= 0:  # applied now: healthy (_observe)
+            rec = self._observed_record(g, fix)
+            first, w, view_first = drift.fading(rec, fix.t_ns)
+            view = drift.view_bias_share > 0
+            vx, vy = rec.view_xy or (math.nan, math.nan)
+            prev = drift.previous(rec)
+            calib = fix.calib_cov if self.cfg.drift_calibration_is_bias else None
+            floors, consts = drift.constants
+        else:
+            drift, first, w, view_first, view, vx, vy, prev, calib = None, True, 0.0, True, False, 0.0, 0.0, None, None
+            floors, consts = _NO_FLOORS, _NO_CONSTS
+        XP, blk, info = kernels.fix_step(
+            x, P, _NO_BIAS_ROOT if L is None else L, R, R_drift, _Z33 if calib is None else calib,
+            _NO_RECORD if prev is None else prev, self._q, self._cap, floors, consts, np.array((
+                s_from_ns(fix.t_ns - t) if fix.t_ns > t else 0.0, accel, i, -1 if L is None else self._bias_index(g, rsu),
+                fix.x, fix.y, fix.yaw, self._gate_thr, self._freeze_lo(g, n), n, len(g.clocks), t_end is not None,
+                s_from_ns(t_end - fix.t_ns) if t_end is not None and t_end > fix.t_ns else 0.0, dt_imu, has_u,
+                u[0] if has_u else 0.0, u[2] if has_u and u[2] is not None else 0.0, has_u and u[2] is not None,
+                self._freeze_lo(g, n), drift is not None, w, view, first, view_first, vx, vy), dtype=float))
+        d2, passed, var_i, drift_ok, bx, by = info.tolist()
+        if not passed:
+            return None
+        acc = None if drift is None else drift.accumulated(rec, fix.t_ns, blk, drift_ok, view, (bx, by))
+        g2, flagged_now = self._observe(self._applied(g, fix, frec.arrival_ns, True), frec, None, None,
+                                        None if i < 0 else var_i, None, accumulated=acc)
+        if flagged_now:
+            return None
+        return XP[0], XP[1:], g2, FixOutcome.ACCEPTED, d2, False, t_end is not None
+
+    def _noise(self, fix: Fix, bias_state: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The fix's covariance as the gate and update take it (without its calibration share when that is
+        a state) and as the drift detector does (without it when it counts as the RSU's bias)."""
+        calib = fix.calib_cov
+        R = fix.cov if not bias_state else fix.cov - calib
+        R_drift = fix.cov if calib is None or not self.cfg.drift_calibration_is_bias else fix.cov - calib
+        return R, R_drift
+
+    def _applied(self, g: _Gate, fix: Fix, arrival_ns: int | None, trusted: bool) -> _Gate:
+        """The gate after applying the fix."""
+        return g._replace(mode=TRACKING, last_accept_ns=fix.t_ns, consecutive=0, cands=() if trusted else g.cands,
+                          last_delay_ns=None if arrival_ns is None else arrival_ns - fix.t_ns, last_source=fix.source,
+                          last_trusted_ns=fix.t_ns if trusted else g.last_trusted_ns)
+
     def _apply_fix(self, x, P, g: _Gate, frec: FixRecord, accel: float):
         """Gate one buffered fix against the state at its capture time (its RSU's slot already in the
         state), apply it if it passes, and show it to the drift detector; returns (x, P, gate, outcome,
@@ -894,14 +969,14 @@ class BusFilter:
             -1 if L is None else self._bias_index(g, rsu), _NO_BIAS_ROOT if L is None else L)
         # the offset's share of the prediction's variance (of its covariance, Hd Hd' P[i, i]: _observe)
         off_var = np.zeros(3) if i is None else Hd * Hd * P[i, i]
-        R = fix.cov if L is None else fix.cov - fix.calib_cov  # with L eps a state: the fix's noise
+        R = self._noise(fix, L is not None)[0]  # with L eps a state: the fix's noise
         rec = g.rsus.get(rsu)
         flagged = rec is not None and rec.flagged
         # A flagged RSU moves no time offset (consider states): a turned camera's bias along the track
         # would pass for a late clock, its own or, through the pose, another RSU's. Down-weighting does
         # not stop a bias that every fix repeats from adding up; the offsets keep what the RSUs that
         # agree taught them.
-        offset_before = None if i is None else (float(x[i]), float(P[i, i]))
+        offset_var = None if i is None else float(P[i, i])
         freeze = slice(STATE_DIM, n) if flagged and n > STATE_DIM else self._considered(g, n)
         x, P, g2, outcome, d2 = self._gate(x, P, g, fix, frec.arrival_ns, H, nu, R, PHt, HPHt, off_var, rec, freeze)
         if outcome is FixOutcome.REACQUIRED:
@@ -910,7 +985,7 @@ class BusFilter:
             # pass for a disagreement between RSUs. The detector starts afresh (flags kept).
             g2 = g2._replace(rsus=MappingProxyType({k: r.restart() for k, r in g2.rsus.items()}))
         elif outcome is not FixOutcome.UNCONFIRMED and not (g.mode == ACQUIRING and not outcome.applied):
-            g2, flagged_now = self._observe(g2, frec, nu_pose, HPHt_pose, offset_before, Hd)
+            g2, flagged_now = self._observe(g2, frec, nu_pose, HPHt_pose, offset_var, Hd)
             if flagged_now and not flagged:
                 x, P = self._distrust(x, P, i, g2.rsus[rsu], self._offset_prior(fix),
                                       None if L is None else self._bias_index(g2, rsu))
@@ -937,10 +1012,7 @@ class BusFilter:
             m = rec.disagreement()
             R_gate = R + np.outer(m, m)
             R = self.cfg.flagged_cov_scale * R_gate
-        delay = None if arrival_ns is None else arrival_ns - fix.t_ns
-        applied = g._replace(mode=TRACKING, last_accept_ns=fix.t_ns, consecutive=0, cands=() if trusted else g.cands,
-                             last_delay_ns=delay, last_source=rsu,
-                             last_trusted_ns=fix.t_ns if trusted else g.last_trusted_ns)
+        applied = self._applied(g, fix, arrival_ns, trusted)
         S = HPHt + R
         if self._gate_thr == math.inf:
             x, P = self._kalman(x, P, H, nu, R, PHt, S, freeze)
@@ -973,42 +1045,51 @@ class BusFilter:
             return x, P, applied, FixOutcome.REACQUIRED, d2
         return x, P, g._replace(consecutive=g.consecutive + 1, cands=cands), FixOutcome.REJECTED_GATE, d2
 
-    def _observe(self, g: _Gate, frec: FixRecord, nu, HPHt, offset_before, Hd) -> tuple[_Gate, bool]:
+    def _observe(self, g: _Gate, frec: FixRecord, nu, HPHt, offset_var, Hd, accumulated=None) -> tuple[_Gate, bool]:
         """The drift detector takes the fix's innovation (against the filter before the update, with
         the fix's own covariance: a down-weighting does not hide the disagreement) while the filter
         is healthy; returns the gate and whether the RSU is flagged now. What every fix of the RSU
         shares is its constant bias (toptag.fusion.trust), not noise: the fix's calibration share, and
         for a flagged RSU what its held time offset's uncertainty implies (along the track: Hd Hd' times
-        its variance, offset_before[1]; Hd: the prediction's derivative by the offset)."""
+        its variance, offset_var; Hd: the prediction's derivative by the offset). accumulated: the RSU's
+        record with the innovation taken already (kernels.fix_step)."""
         fix = frec.fix
         rsu = fix.source
-        rec = g.rsus.get(rsu) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None,
-                                           calib_id=fix.calib_id)
-        known = fix.clock_bound_ns is not None
-        if rec.clock_known != known:  # a NamedTuple copy only when it changes
-            rec = rec._replace(clock_known=known)
-        if rec.calib_id != fix.calib_id:  # recalibrated: what was learnt of the old calibration goes
-            rec = rec.recalibrated(fix.calib_id)
+        rec = self._observed_record(g, fix)
         rsus = dict(g.rsus)
         healthy = g.mode == TRACKING and g.last_accept_ns is not None and \
             fix.t_ns - g.last_accept_ns <= self._healthy_ns
         if self._drift is not None and healthy:
-            calib = fix.calib_cov if self.cfg.drift_calibration_is_bias else None
-            R = fix.cov if calib is None else fix.cov - calib
-            S = HPHt + R
-            # A flagged RSU's offset is held at its prior: what that implies is a constant bias of its
-            # fixes (else it could not clear). Unflagged, the offset is learnt from them, and no flag is
-            # raised while it is uncertain (drift_max_offset_sigma_ms).
-            off_cov = np.outer(Hd, Hd) * offset_before[1] if rec.flagged and offset_before is not None else None
-            shares = [b for b in (calib, off_cov) if b is not None]
-            rsus[rsu] = self._drift.accumulate(rec, fix.t_ns, nu, S, sum(shares) if shares else None, R,
-                                               (fix.x - nu[0], fix.y - nu[1]))
-            sd = 0.0 if offset_before is None else math.sqrt(max(offset_before[1], 0.0))
+            if accumulated is None:
+                calib = fix.calib_cov if self.cfg.drift_calibration_is_bias else None
+                R = self._noise(fix, False)[1]
+                # A flagged RSU's offset is held at its prior: what that implies is a constant bias of its
+                # fixes (else it could not clear). Unflagged, the offset is learnt from them, and no flag is
+                # raised while it is uncertain (drift_max_offset_sigma_ms).
+                off_cov = np.outer(Hd, Hd) * offset_var if rec.flagged and offset_var is not None else None
+                shares = [b for b in (calib, off_cov) if b is not None]
+                accumulated = self._drift.accumulate(rec, fix.t_ns, nu, HPHt + R, sum(shares) if shares else None, R,
+                                                     (fix.x - nu[0], fix.y - nu[1]))
+            rsus[rsu] = accumulated
+            sd = 0.0 if offset_var is None else math.sqrt(max(offset_var, 0.0))
             rec = self._drift.decide(rsus, rsu, fix.t_ns, sd)
         else:
             rec = rec._replace(last_t=fix.t_ns)
         rsus[rsu] = rec
         return g._replace(rsus=MappingProxyType(rsus)), rec.flagged
+
+    @staticmethod
+    def _observed_record(g: _Gate, fix: Fix) -> RsuRecord:
+        """The record of the fix's RSU as the drift detector takes the fix: new for an RSU not seen before,
+        with its clock flag as the fix says, and started afresh for a calibration other than its fixes' before."""
+        rec = g.rsus.get(fix.source) or RsuRecord(last_t=fix.t_ns, clock_known=fix.clock_bound_ns is not None,
+                                                  calib_id=fix.calib_id)
+        known = fix.clock_bound_ns is not None
+        if rec.clock_known != known:  # a NamedTuple copy only when it changes
+            rec = rec._replace(clock_known=known)
+        if rec.calib_id != fix.calib_id:  # recalibrated: what was learnt of the old calibration goes
+            rec = rec.recalibrated(fix.calib_id)
+        return rec
 
     @staticmethod
     def _distrust(x, P, i: int | None, rec: RsuRecord, prior_var: float, j: int | None = None):

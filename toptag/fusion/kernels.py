@@ -4,6 +4,9 @@ rate's random step and the gyro/wheel update (toptag.fusion.filter: `_predict`, 
 toptag.fusion.offsets.pose_before), and the growth of an estimate's covariance beyond the newest IMU
 sample (`_unmeasured_motion`), which the bus agent asks for at 50 Hz, and the drift detector's arithmetic
 (toptag.fusion.trust: `DriftRule.accumulate`, `_deviation`; `drift_accumulate`, `drift_deviation`).
+`fix_step` is a trusted RSU's fix while tracking (nearly every fix) as one call of those: the bus agent runs
+the filter every 20 ms, and code run once after a sleep is cold, so the number of calls counts more there than
+their speed.
 
 Why compiled. A fix arriving ~100 ms late re-runs the ~10 IMU steps after its capture time; at 40
 fixes/s that is 4-5 steps per IMU sample received. Each step is a few dozen numpy calls on a state of
@@ -200,15 +203,22 @@ def imu_update(x, P, dt, q, gyro, wheel, has_wheel, freeze_lo):
 def imu_step(x, P, dt, a, q, n_clocks, has_u, gyro, wheel, has_wheel, freeze_lo):
     """One whole IMU step without a fix in it: predict over dt, then imu_update (none if not has_u)."""
     xn, Pn = predict(x, P, dt, a, q, n_clocks)
-    if not has_u:
-        if dt > 0:
-            qw = q[Q_A] * dt
-            Pn[2, 2] += qw * dt * dt / 4
-            Pn[2, 4] += qw * dt / 2
-            Pn[4, 2] += qw * dt / 2
-            Pn[4, 4] += qw
-        return xn, Pn
-    return imu_update(xn, Pn, dt, q, gyro, wheel, has_wheel, freeze_lo)
+    return _step_end(xn, Pn, dt, q, has_u, gyro, wheel, has_wheel, freeze_lo)
+
+
+@compiled
+def _step_end(x, P, dt, q, has_u, gyro, wheel, has_wheel, freeze_lo):
+    """An IMU step's end after its prediction (P, fresh from it, is changed): imu_update, or without IMU
+    input the yaw rate's random step alone (filter._yaw_rate_noise)."""
+    if has_u:
+        return imu_update(x, P, dt, q, gyro, wheel, has_wheel, freeze_lo)
+    if dt > 0:
+        qw = q[Q_A] * dt
+        P[2, 2] += qw * dt * dt / 4
+        P[2, 4] += qw * dt / 2
+        P[4, 2] += qw * dt / 2
+        P[4, 4] += qw
+    return x, P
 
 
 @compiled
@@ -349,6 +359,66 @@ def capped_d2(HPHt, R, cap, off_var, nu):
     return mahalanobis(S, nu)
 
 
+# fix_step's scalars in one array `s` (a call converts one argument, not twenty-five: FS_*), and its small
+# results in one array `info` (FI_*)
+FS_DT, FS_A, FS_I, FS_J, FS_X, FS_Y, FS_YAW, FS_THR, FS_LO, FS_HI, FS_CLOCKS, FS_TAIL, FS_DT2, FS_DT_IMU, FS_HAS_U, \
+    FS_GYRO, FS_WHEEL, FS_HAS_WHEEL, FS_FREEZE, FS_DRIFT, FS_W, FS_VIEW, FS_FIRST, FS_VIEW_FIRST, FS_VX, FS_VY = range(26)
+FS_LEN = 26
+FI_D2, FI_OK, FI_VAR_I, FI_DRIFT_OK, FI_XY = 0, 1, 2, 3, 4
+FI_LEN = 6
+
+
+@compiled
+def fix_step(x, P, L, R, Rd, B, prev, q, cap, floors, consts, s):
+    """A trusted RSU's fix while tracking, as the filter applies it (filter._advance, _apply_fix, _gate,
+    _observe; then, with s[FS_TAIL], the rest of its IMU step, _imu_step), in one call: the prediction to
+    the fix, its model, the capped gate's d², and if it passes the Kalman update, with s[FS_DRIFT] the drift
+    detector's drift_accumulate (its innovation against the pose before the update, with the fix's own noise
+    Rd and bias share B, its record before `prev`), and the prediction to the step's end and its IMU update.
+    Returns (XP: the state in row 0 and its covariance below, at the fix or at the step's end; the drift
+    record, DA_ layout; info, FI_ layout: d², passed 1 / 0, the RSU's offset variance before the update, the
+    drift arithmetic's ok, where the bus was for it). Not passed: XP is empty and the filter takes its Python
+    gate (consensus: rare). Paced as in the bus agent each call's first run after a 20 ms sleep is cold: one
+    call for what were seven."""
+    n = x.shape[0]
+    info = np.zeros(FI_LEN)
+    dt, a = s[FS_DT], s[FS_A]
+    i, j = int(s[FS_I]), int(s[FS_J])
+    n_clocks = int(s[FS_CLOCKS])
+    if dt > 0:
+        x, P = predict(x, P, dt, a, q, n_clocks)
+    pose = np.empty(3)
+    pose[0], pose[1], pose[2] = s[FS_X], s[FS_Y], s[FS_YAW]
+    nu_pose, nu, H, PHt, HPHt, HPHt_pose, Hd = fix_model(x, P, pose, i, a, j, L)
+    off_var = np.zeros(3)
+    if i >= 0:
+        off_var = Hd * Hd * P[i, i]
+        info[FI_VAR_I] = P[i, i]
+    d2 = capped_d2(HPHt, R, cap, off_var, nu)
+    info[FI_D2] = d2
+    blk = prev
+    if not d2 <= s[FS_THR]:
+        return np.empty((0, n)), blk, info
+    info[FI_OK] = 1.0
+    x, P = kalman(x, P, PHt, HPHt + R, nu, int(s[FS_LO]), int(s[FS_HI]))
+    if s[FS_DRIFT] != 0.0:
+        xy = np.empty(4)
+        xy[0], xy[1], xy[2], xy[3] = s[FS_X] - nu_pose[0], s[FS_Y] - nu_pose[1], s[FS_VX], s[FS_VY]
+        info[FI_XY], info[FI_XY + 1] = xy[0], xy[1]
+        blk, ok = drift_accumulate(nu_pose, HPHt_pose + Rd, B, Rd, prev, floors, consts, s[FS_W], xy,
+                                   s[FS_VIEW] != 0.0, s[FS_FIRST] != 0.0, s[FS_VIEW_FIRST] != 0.0)
+        info[FI_DRIFT_OK] = 1.0 if ok else 0.0
+    if s[FS_TAIL] != 0.0:
+        if s[FS_DT2] > 0:
+            x, P = predict(x, P, s[FS_DT2], a, q, n_clocks)
+        x, P = _step_end(x, P, s[FS_DT_IMU], q, s[FS_HAS_U] != 0.0, s[FS_GYRO], s[FS_WHEEL], s[FS_HAS_WHEEL] != 0.0,
+                         int(s[FS_FREEZE]))
+    XP = np.empty((n + 1, n))
+    XP[0] = x
+    XP[1:] = P
+    return XP, blk, info
+
+
 @compiled
 def unmeasured_motion(P, v, th, q, tau):
     """filter._unmeasured_motion: P (not changed) grown by tau seconds of white yaw acceleration (q[Q_A])
@@ -430,6 +500,61 @@ def sym_sqrt(R):
     return (V * np.sqrt(np.maximum(w, 0.0))) @ V.T
 
 
+_T27 = 134217729.0  # 2^27 + 1: Veltkamp's split of a double into two halves whose products are exact
+
+
+@compiled
+def py_hypot(a, b):
+    """math.hypot(a, b) as CPython 3.11 computes it (Modules/mathmodule.c, vector_norm: scaled, squares split
+    and summed with their rounding errors kept, one correction step), so that a compiled caller gets the bits
+    the filter's Python got; the C library's hypot differs in the last bit for ~0.2 % of arguments."""
+    x0, x1 = abs(a), abs(b)
+    if math.isinf(x0) or math.isinf(x1):
+        return math.inf
+    if math.isnan(x0) or math.isnan(x1):
+        return math.nan
+    mx = max(x0, x1)
+    if mx == 0.0:
+        return mx
+    e = math.frexp(mx)[1]
+    if e < -1023:  # subnormal (CPython rescales by DBL_MIN first): far below any distance the filter sees
+        return math.hypot(a, b)
+    scale = math.ldexp(1.0, -e)
+    csum, frac1, frac2, frac3 = 1.0, 0.0, 0.0, 0.0
+    for k in range(2):
+        x = (x0 if k == 0 else x1) * scale
+        t = x * _T27
+        hi = t - (t - x)
+        lo = x - hi
+        x = hi * hi
+        old = csum
+        csum += x
+        frac1 += (old - csum) + x
+        x = 2.0 * hi * lo
+        old = csum
+        csum += x
+        frac2 += (old - csum) + x
+        frac3 += lo * lo
+    h = math.sqrt(csum - 1.0 + (frac1 + frac2 + frac3))
+    t = h * _T27
+    hi = t - (t - h)
+    lo = h - hi
+    x = -hi * hi
+    old = csum
+    csum += x
+    frac1 += (old - csum) + x
+    x = -2.0 * hi * lo
+    old = csum
+    csum += x
+    frac2 += (old - csum) + x
+    x = -lo * lo
+    old = csum
+    csum += x
+    frac3 += (old - csum) + x
+    x = csum - 1.0 + (frac1 + frac2 + frac3)
+    return (h + x / (2.0 * h)) / scale
+
+
 # drift_accumulate's record as one array (DA_LEN, 3, 3): its 3x3 sums and results, then a block of vectors whose
 # rows are b, m and (sw, sw2, stat). One array: boxing each of thirteen results cost more than the arithmetic.
 DA_A, DA_A2, DA_BS, DA_Q, DA_H, DA_C, DA_BIAS, DA_VEC = range(8)
@@ -437,14 +562,15 @@ DA_LEN = 8
 
 
 @compiled
-def drift_accumulate(nu, S, B, R, prev, floors, consts, w, rho, view, first, view_first):
+def drift_accumulate(nu, S, B, R, prev, floors, consts, w, xy, view, first, view_first):
     """toptag.fusion.trust.DriftRule.accumulate's arithmetic on 3x3 blocks (the same expressions in the
     same order): the clipped innovation, its information added to the faded sums of `prev` (the record
-    before, DA_ layout; not read when first, nor its Q and H when view_first), the view-error terms (rho:
-    the fading of H by the time and the distance since the RSU's last fix), then the mean, its covariance,
-    the statistic and the bias covariance (DriftRule.bias_cov). floors: (the clip's floor, bias_floor);
-    consts: (clip_d2, the white share of R taken out of S, view_bias_share²). Returns (the record, DA_
-    layout; ok), ok False where S or A is singular (np.linalg.inv raised there)."""
+    before, DA_ layout; not read when first, nor its Q and H when view_first), the view-error terms (H
+    faded by w and by the distance from where the bus was at the RSU's last fix, xy[2:], NaN: unknown, to
+    where it is, xy[:2]), then the mean, its covariance, the statistic and the bias covariance
+    (DriftRule.bias_cov). floors: (the clip's floor, bias_floor); consts: (clip_d2, the white share of R
+    taken out of S, view_bias_share², view_corr_m). Returns (the record, DA_ layout; ok), ok False where S
+    or A is singular (np.linalg.inv raised there)."""
     floor, bias_floor = floors[0], floors[1]
     clip_d2, white_share2, view_share2 = consts[0], consts[1], consts[2]
     out = np.zeros((DA_LEN, 3, 3))
@@ -467,7 +593,8 @@ def drift_accumulate(nu, S, B, R, prev, floors, consts, w, rho, view, first, vie
     if view and view_first:
         Q, H = _matmul(X, X.T.copy()), X
     elif view:
-        Hp = rho * prev[DA_H]
+        gap = 0.0 if math.isnan(xy[2]) else py_hypot(xy[0] - xy[2], xy[1] - xy[3])
+        Hp = (w * math.exp(-gap / consts[3])) * prev[DA_H]
         cross = _matmul(X, Hp.T.copy())
         Q, H = (w * w) * prev[DA_Q] + _matmul(X, X.T.copy()) + cross + cross.T.copy(), Hp + X
     Ai, ok = _inverse(A)
@@ -532,12 +659,19 @@ def warm_up() -> None:
         mahalanobis(HPHt + np.eye(3), nu)
     pose_before(x2, 0.01, 0.1)
     e3, z3 = np.eye(3), np.zeros((3, 3))
-    prev, floors = np.zeros((DA_LEN, 3, 3)), np.stack((e3, e3))
+    prev, floors, consts = np.zeros((DA_LEN, 3, 3)), np.stack((e3, e3)), np.array([100.0, 0.5, 0.5, 6.0])
     for view, first in ((True, True), (True, False), (False, True), (False, False)):
-        drift_accumulate(pose, e3, z3, e3, prev, floors, np.array([100.0, 0.5, 0.5]), 0.9, 0.8, view, first, first)
+        drift_accumulate(pose, e3, z3, e3, prev, floors, consts, 0.9, np.zeros(4), view, first, first)
     drift_deviation(pose, e3, e3, np.zeros((2, 3)), np.zeros((2, 3, 3)), np.zeros((2, 3, 3)))
+    for tail in (0.0, 1.0):
+        for i, j, has_u in ((8, n - 3, 1.0), (8, -1, 0.0), (-1, -1, 1.0)):
+            sc = np.zeros(FS_LEN)
+            sc[[FS_DT, FS_I, FS_J, FS_THR, FS_LO, FS_HI, FS_CLOCKS, FS_TAIL, FS_DT2, FS_DT_IMU, FS_HAS_U, FS_FREEZE,
+                FS_DRIFT, FS_VIEW, FS_FIRST, FS_VIEW_FIRST]] = (0.004, i, j, 1e9, n, n, 4, tail, 0.006, 0.01, has_u, n, 1.0,
+                                                                 1.0, 1.0, 1.0)
+            fix_step(x2, P2, L, e3, e3, z3, prev, q, np.ones(3), floors, consts, sc)
     sym_sqrt(e3)
 
 
-__all__ = ["Q_LEN", "capped_d2", "fix_model", "imu_step", "imu_steps", "imu_update", "kalman", "mahalanobis",
+__all__ = ["Q_LEN", "capped_d2", "fix_model", "fix_step", "imu_step", "imu_steps", "imu_update", "kalman", "mahalanobis",
            "pose_before", "predict", "sym_sqrt", "unmeasured_motion", "warm_up", "wrap"]

@@ -100,6 +100,7 @@ CALIBRATE_CHECK = "toptag calibrate check --camera CAM.json --points POINTS.json
 MAX_VIEW_SHARE_OF_VARIANCE = 0.9
 _Z33 = np.zeros((3, 3))  # stand-ins for the compiled arithmetic's absent arguments (never written)
 _NO_RECORD = np.zeros((kernels.DA_LEN, 3, 3))
+_NOWHERE = (math.nan, math.nan)  # an unknown place of the bus (drift_accumulate's xy)
 
 
 class RsuRecord(NamedTuple):
@@ -262,17 +263,28 @@ class DriftRule:
         # view errors u of two fixes correlate as exp(-distance driven between them / view_corr_m): Q = sum_jk
         # X_j rho_jk X_k' (X = S^-1 R^1/2), kept with H = sum_k rho(now, k) X_k (both faded as b is).
         view = self.view_bias_share > 0 and R is not None and xy is not None
-        first = rec.A is None
-        w = 0.0 if first else math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
-        view_first = first or rec.H is None
-        rho = 0.0
-        if view and not view_first:
-            gap = 0.0 if rec.view_xy is None else math.hypot(xy[0] - rec.view_xy[0], xy[1] - rec.view_xy[1])
-            rho = w * math.exp(-gap / self.view_corr_m)
+        first, w, view_first = self.fading(rec, t_ns)
         blk, ok = kernels.drift_accumulate(
             np.asarray(nu, dtype=float), np.asarray(S, dtype=float), _Z33 if B is None else np.asarray(B, dtype=float),
-            _Z33 if R is None else np.asarray(R, dtype=float), _NO_RECORD if first else _block(rec), self._floors,
-            self._consts, w, rho, view, first, view_first)
+            _Z33 if R is None else np.asarray(R, dtype=float), self.previous(rec), *self.constants, w,
+            np.array((*(_NOWHERE if xy is None else xy), *(rec.view_xy or _NOWHERE)), dtype=float), view, first, view_first)
+        return self.accumulated(rec, t_ns, blk, ok, view, xy)
+
+    def fading(self, rec: RsuRecord, t_ns: int) -> tuple[bool, float, bool]:
+        """(first: no innovation before, w: the fading of the sums since the RSU's last fix, view_first: no
+        view-error sums before), as accumulate's arithmetic takes them."""
+        first = rec.A is None
+        w = 0.0 if first else math.exp(-s_from_ns(max(0, t_ns - rec.last_t)) / self.window_s)
+        return first, w, first or rec.H is None
+
+    @staticmethod
+    def previous(rec: RsuRecord) -> np.ndarray:
+        """The record's sums as the arithmetic takes them (DA_ layout; zeros before its first innovation)."""
+        return _NO_RECORD if rec.A is None else _block(rec)
+
+    def accumulated(self, rec: RsuRecord, t_ns: int, blk: np.ndarray, ok: bool, view: bool, xy) -> RsuRecord:
+        """The record with kernels.drift_accumulate's results (blk, ok) for the innovation at t_ns, the bus at
+        xy."""
         if not ok:
             raise np.linalg.LinAlgError("singular innovation information in the drift detector")
         sw, sw2, stat = blk[kernels.DA_VEC, 2].tolist()
@@ -310,6 +322,11 @@ class DriftRule:
             B = B + self.view_bias_share ** 2 * (Ai @ Q @ Ai)
         return B
 
+    @cached_property
+    def constants(self) -> tuple[np.ndarray, np.ndarray]:
+        """drift_accumulate's floors and consts of this rule."""
+        return self._floors, self._consts
+
     @cached_property  # the rule is frozen: accumulate's constants once
     def _floors(self) -> np.ndarray:
         return np.stack((self._floor, np.asarray(self.bias_floor, dtype=float)))
@@ -317,7 +334,7 @@ class DriftRule:
     @cached_property
     def _consts(self) -> np.ndarray:
         return np.array([self.clip_d2, min(self.view_bias_share ** 2, MAX_VIEW_SHARE_OF_VARIANCE),
-                         self.view_bias_share ** 2], dtype=float)
+                         self.view_bias_share ** 2, self.view_corr_m], dtype=float)
 
     @cached_property
     def _floor(self) -> np.ndarray:
