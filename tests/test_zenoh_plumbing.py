@@ -8,13 +8,15 @@ import math
 import os
 import signal
 import statistics
+import subprocess
+import sys
 import threading
 import time
 import zlib
 
 import pytest
 import zenoh
-from conftest import key_for
+from conftest import REPO, clean_env, key_for
 
 from protocol import Frame, Imu, PoseFix, codec, encode, keys
 from protocol.transport import (
@@ -600,6 +602,51 @@ def test_config_precedence_cli_over_env_over_file_over_defaults(tmp_path):
     bad.write_text("{ mode: ")
     with pytest.raises(ZenohSetupError, match="bad.json5"):
         zenoh_config_from_args(_parse(["--zenoh-config", str(bad)]), environ={})
+
+
+ZENOH_THREADS = """
+import os, sys, time
+from protocol.transport import ONE_ZENOH_THREAD, ZenohSetupError, open_session
+ep, runtime = sys.argv[1], {"one": ONE_ZENOH_THREAD, "-": None}[sys.argv[2]]
+try:
+    a = open_session(mode="peer", listen=[ep], multicast_scouting=False, runtime=runtime)
+except ZenohSetupError as e:
+    print("ERROR", e)
+    sys.exit(3)
+b = open_session(mode="peer", connect=[ep], multicast_scouting=False)
+deadline = time.monotonic() + 60
+while not list(b.info.peers_zid()) and time.monotonic() < deadline:
+    time.sleep(0.05)
+time.sleep(0.3)  # the link's rx and tx tasks have started their threads
+names = sorted(open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task"))
+print("THREADS", " ".join(names), "| LEFT", os.environ.get("ZENOH_RUNTIME"))
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="thread names from /proc")
+@pytest.mark.parametrize("runtime, env, want, not_want", [
+    ("-", None, ("rx-0", "rx-1", "tx-0"), ()),  # Zenoh's default: the test can tell the threads apart
+    ("one", None, ("app-0",), ("rx-", "tx-", "net-", "acc-")),
+    ("one", "(rx: (worker_threads: 1))", ("rx-0", "tx-0"), ("rx-1",)),  # the operator's ZENOH_RUNTIME wins
+])
+def test_a_process_opens_its_sessions_with_the_zenoh_threads_asked(free_port, runtime, env, want, not_want):
+    p = subprocess.run([sys.executable, "-c", ZENOH_THREADS, f"tcp/127.0.0.1:{free_port()}", runtime], cwd=REPO,
+                       env=clean_env(None if env is None else {"ZENOH_RUNTIME": env}), capture_output=True,
+                       text=True, timeout=120)
+    line = next((ln for ln in p.stdout.splitlines() if ln.startswith("THREADS")), None)
+    assert p.returncode == 0 and line is not None, p.stdout + p.stderr[-2000:]
+    names = line.split()[1:line.split().index("|")]
+    assert all(w in names for w in want) and not any(n.startswith(not_want) for n in names), names
+    assert line.endswith(f"LEFT {env}"), line  # not left in the environment for the processes it starts
+
+
+def test_a_bad_zenoh_runtime_fails_with_one_line(free_port):
+    p = subprocess.run([sys.executable, "-c", ZENOH_THREADS, f"tcp/127.0.0.1:{free_port()}", "one"], cwd=REPO,
+                       env=clean_env({"ZENOH_RUNTIME": "(rx: (workers: 1))"}), capture_output=True, text=True,
+                       timeout=120)
+    errors = [ln for ln in p.stdout.splitlines() if ln.startswith("ERROR")]
+    assert p.returncode == 3 and len(errors) == 1, p.stdout + p.stderr[-2000:]
+    assert "ZENOH_RUNTIME='(rx: (workers: 1))'" in errors[0] and "workers" in errors[0]
 
 
 def test_client_without_router_fails_with_one_line(free_port):

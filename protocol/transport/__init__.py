@@ -5,6 +5,7 @@ publishers (publishing), safe subscribers (subscribing), receive counters (count
 Written against eclipse-zenoh 1.10 (Python); each module states the measured facts it relies on.
 Importing `protocol` alone never loads Zenoh; importing `protocol.transport` does."""
 from protocol.transport.config import (
+    ONE_ZENOH_THREAD,
     ZenohSetupError,
     add_zenoh_arguments,
     config_summary,
@@ -41,7 +42,7 @@ from protocol.transport.sessions import query_sessions, serve_session
 from protocol.transport.subscribing import SafeSubscriber, latest_receiver, subscribe_messages
 
 __all__ = [
-    "ACCEPTED", "DROPPED", "FULL", "HANDLER_ERROR", "IGNORED", "MATCH_SETTLE_S", "MISSING", "QOS", "REJECTED", "SKIPPED",
+    "ACCEPTED", "DROPPED", "ONE_ZENOH_THREAD", "FULL", "HANDLER_ERROR", "IGNORED", "MATCH_SETTLE_S", "MISSING", "QOS", "REJECTED", "SKIPPED",
     "LivelinessWatcher", "LogLimiter", "MessageCounters", "MessagePublisher", "Qos", "SafeSubscriber",
     "ZenohSetupError", "add_zenoh_arguments", "config_summary", "declare_alive", "declare_publisher",
     "encoding_for", "latest_receiver", "open_session", "publish", "qos_for", "query_sessions",

@@ -4,6 +4,11 @@ JSON5 file, the environment and the command line, with one precedence order.
 Facts this module relies on (eclipse-zenoh 1.10, Python):
 - Client mode without a reachable router fails at open (immediately); peer mode opens and keeps
   retrying its connect endpoints in the background.
+- Zenoh's runtime threads are set by the ZENOH_RUNTIME environment variable (RON, zenoh-runtime's
+  syntax), read once, when the process first opens a session; the rx, tx, ... threads start with its
+  first link. By default a process runs two rx workers, a tx and a net thread (plus acc and app), and a
+  message passes between them: in the bus agent (`toptag bench bus`, 100 Hz IMU, 40 fixes/s, 50 Hz
+  output) they took ~700 context switches a second and ~2 % of a core.
 """
 from __future__ import annotations
 
@@ -25,6 +30,14 @@ ENV_CONNECT = "TOPTAG_ZENOH_CONNECT"
 ENV_LISTEN = "TOPTAG_ZENOH_LISTEN"
 ENV_CONFIG = "TOPTAG_ZENOH_CONFIG"
 ENV_MULTICAST = "TOPTAG_ZENOH_MULTICAST"
+ENV_RUNTIME = "ZENOH_RUNTIME"
+# Every runtime's work handed over to the app runtime's single worker: one Zenoh thread, no hand-off between
+# Zenoh's own threads. For a process whose Python takes its messages from channels (the bus agent): its
+# context switches 14 100 -> 5 800 per 20 s, Zenoh's threads 0.46 -> 0.31 s of CPU (docs/real-time.md).
+# Not for every process: that thread then carries all of a process's Zenoh I/O, and with it in every process
+# of `toptag bench demo` the simulator sent frames up to 2.5 s late and the RSUs skipped 11-13 % of their
+# frames for being busy (0.0-0.2 % with it in the bus agents only, as without it).
+ONE_ZENOH_THREAD = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app))"
 
 
 class ZenohSetupError(SetupError):
@@ -110,17 +123,32 @@ def config_summary(conf: zenoh.Config) -> str:
     return f"mode={mode} listen={listen or []} connect={get('connect/endpoints') or []}"
 
 
-def open_session(conf: zenoh.Config | None = None, **config_kwargs) -> zenoh.Session:
+def open_session(conf: zenoh.Config | None = None, *, runtime: str | None = None, **config_kwargs) -> zenoh.Session:
     """Open a zenoh session from ``conf`` or from zenoh_config(**config_kwargs). Raises
-    ZenohSetupError (one line) if zenoh refuses (port in use, bad endpoint, no router in client mode)."""
+    ZenohSetupError (one line) if zenoh refuses (port in use, bad endpoint, no router in client mode).
+
+    ``runtime``: Zenoh's runtime threads for this process (a ZENOH_RUNTIME value, e.g. ONE_ZENOH_THREAD),
+    taken only by the process's first session and only when the environment sets no ZENOH_RUNTIME (an
+    operator's choice wins). It is not left in the environment: processes started later choose their own."""
     if conf is None:
         conf = zenoh_config(**config_kwargs)
     elif config_kwargs:
         raise TypeError("pass either a zenoh.Config or zenoh_config() keyword arguments, not both")
+    own = runtime is not None and ENV_RUNTIME not in os.environ
+    if own:
+        os.environ[ENV_RUNTIME] = runtime
     try:
         return zenoh.open(conf)
     except Exception as e:
         raise ZenohSetupError(f"cannot open zenoh session ({config_summary(conf)}): {_one_line(e)}") from None
+    except BaseException as e:  # zenoh-runtime panics on a ZENOH_RUNTIME it cannot parse (pyo3's PanicException)
+        if type(e).__name__ != "PanicException":
+            raise
+        raise ZenohSetupError(f"cannot open zenoh session: {ENV_RUNTIME}={os.environ.get(ENV_RUNTIME)!r}: "
+                              f"{_one_line(e)}") from None
+    finally:
+        if own:
+            del os.environ[ENV_RUNTIME]
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser, *, default_mode: str = "peer") -> None:

@@ -97,9 +97,11 @@ def setup_logging(level: str) -> None:
 def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
                 build: Callable[[zenoh.Session, Any], Service], describe: Callable[[Any], str], *,
                 settings: type[ServiceSettings] = ServiceSettings,
-                zenoh_config: Callable[[argparse.Namespace, Any], zenoh.Config] | None = None) -> int:
+                zenoh_config: Callable[[argparse.Namespace, Any], zenoh.Config] | None = None,
+                zenoh_runtime: str | None = None) -> int:
     """Run one service process (see the module docstring). ``zenoh_config(args, inputs)`` builds the
-    session's config when the default (the service's Zenoh options) is not enough (the router)."""
+    session's config when the default (the service's Zenoh options) is not enough (the router);
+    ``zenoh_runtime``: Zenoh's runtime threads for the process (open_session's ``runtime``)."""
     setup_logging(args.log_level)
     service: Service | None = None
 
@@ -115,7 +117,7 @@ def run_service(prog: str, args: argparse.Namespace, load: Callable[[], Any],
             if signals:
                 return EXIT_OK
             conf = zenoh_config(args, inputs) if zenoh_config else zenoh_config_from_args(args)
-            session = open_session(conf)
+            session = open_session(conf, runtime=zenoh_runtime)
             log.info("zenoh session open (%s)", config_summary(conf))
         except ToptagError as e:
             return report(prog, e)

@@ -15,7 +15,9 @@ order) before it estimates. A fix's arrival, for the filter's health and the lat
 it in (up to one output period after it reached the process). The step's output holds the same inputs
 as when a callback thread fed each message to the filter on arrival; it costs one wake-up per step
 instead of one per message (with a thread hop and a GIL hand-off each: most of the agent's CPU at
-100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md).
+100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md). Its Zenoh runs on one thread
+(protocol.transport.ONE_ZENOH_THREAD): no Python waits in Zenoh's threads here, and each message no longer
+passes between Zenoh's rx, tx and net threads (context switches 0.4x, docs/real-time.md).
 """
 from __future__ import annotations
 
@@ -41,6 +43,7 @@ from protocol.messages import (
     RsuDiagnosis,
 )
 from protocol.transport import (
+    ONE_ZENOH_THREAD,
     MessageCounters,
     MessagePublisher,
     declare_alive,
@@ -386,4 +389,4 @@ def main(argv: list[str]) -> int:
                        lambda session, inputs: BusAgent(session, *inputs, fused_hz=args.fused_hz,
                                                         filter_config=args.settings.filter),
                        lambda inputs: f"bus {inputs[0].id} ({len(inputs[1].intersections)} intersections known)",
-                       settings=BusSettings)
+                       settings=BusSettings, zenoh_runtime=ONE_ZENOH_THREAD)
