@@ -383,12 +383,11 @@ class BusFilter:
                 self._pre_imu_dropped_ns = max(p[0] for p in self._pre_imu if p[0] < cut)
                 self._pre_imu = [p for p in self._pre_imu if p[0] >= cut]
             return True
-        self._ensure_clean()
-        head = self._steps[-1]
-        if t_ns <= head.t:  # start-up time after this sample
+        if t_ns <= self._steps[-1].t:  # start-up time after this sample
             return True
-        self._steps.append(_Step(t_ns, u, *self._imu_step(head, t_ns, u)))
-        self._dirty = len(self._steps)
+        # Computed when next needed (_ensure_clean): with the other samples the bus agent takes in at each
+        # step and the steps a late fix re-computes, in one compiled call (kernels.imu_steps), not one each.
+        self._steps.append(_Step(t_ns, u, None, None, None))
         self._prune()
         return True
 
@@ -669,6 +668,8 @@ class BusFilter:
             n += 1
         if n == 0:
             return
+        if self._dirty <= n:  # the fixes archived below go with their final outcomes
+            self._ensure_clean(n)
         del steps[:n]
         self._dirty = max(1, self._dirty - n)
         t0 = steps[0].t
