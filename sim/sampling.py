@@ -57,8 +57,8 @@ def in_some_view_many(cameras, vehicle: Vehicle, poses, min_tags: int = 2, margi
     """in_some_view for many poses of one vehicle at once: poses (N, 4) of x, y, yaw, roof z; (N,) bools.
     One projection per camera for all of them (a pose at a time costs ~0.3 ms of Python)."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 4)
-    plates = _roof_to_world(np.stack([vehicle.plate_corners(t) for t in vehicle.tag_ids]), poses).reshape(-1, 3)
-    tags = _roof_to_world(np.stack([vehicle.tag_corners(t) for t in vehicle.tag_ids]), poses).reshape(-1, 3)
+    plates = vehicle_to_world(np.stack([vehicle.plate_corners(t) for t in vehicle.tag_ids]), *poses.T).reshape(-1, 3)
+    tags = vehicle_to_world(np.stack([vehicle.tag_corners(t) for t in vehicle.tag_ids]), *poses.T).reshape(-1, 3)
     seen = np.zeros(len(poses), dtype=bool)
     for camera in cameras:
         whole = (camera.to_camera(plates)[:, 2] > 0) & camera.in_image(camera.project(plates), margin_px)
@@ -67,16 +67,6 @@ def in_some_view_many(cameras, vehicle: Vehicle, poses, min_tags: int = 2, margi
             ok &= thinnest_cell_px_many(camera.project(tags)).reshape(ok.shape) >= min_cell_px
         seen |= ok.sum(axis=1) >= min_tags
     return seen
-
-
-def _roof_to_world(points, poses: np.ndarray) -> np.ndarray:
-    """Roof points (T, 4, 3) of a vehicle at each of poses (N, 4: x, y, yaw, roof z) in the world: (N, T, 4, 3)."""
-    c, s = np.cos(poses[:, 2])[:, None, None], np.sin(poses[:, 2])[:, None, None]
-    out = np.empty((len(poses),) + points.shape)
-    out[..., 0] = c * points[..., 0] - s * points[..., 1] + poses[:, None, None, 0]
-    out[..., 1] = s * points[..., 0] + c * points[..., 1] + poses[:, None, None, 1]
-    out[..., 2] = points[..., 2] + poses[:, None, None, 3]
-    return out
 
 
 def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> bool:

@@ -15,9 +15,12 @@ def wrap_angle(a):
     return np.where(w == -np.pi, np.pi, w)
 
 
-def rot_z(yaw: float) -> np.ndarray:
+def rot_z(yaw) -> np.ndarray:
+    """Rotation about z by yaw (rad): (3, 3), or (M, 3, 3) for M yaws."""
     c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    R = np.zeros(np.shape(c) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 1, 0], R[..., 1, 1], R[..., 2, 2] = c, -s, s, c, 1.0
+    return R
 
 
 def rodrigues(rvec) -> np.ndarray:
@@ -58,7 +61,10 @@ def nearest_rotation(M) -> np.ndarray:
     return U @ D @ Vt
 
 
-def vehicle_to_world(points_top, x: float, y: float, yaw: float, z: float) -> np.ndarray:
-    """Points in the vehicle-top frame (N,3) to world, for a vehicle at (x, y, yaw) with roof height z."""
+def vehicle_to_world(points_top, x, y, yaw, z) -> np.ndarray:
+    """Points in the vehicle-top frame (N,3) to world, for a vehicle at (x, y, yaw) with roof height z: (N,3).
+    With M poses (x, y, yaw, z each an (M,) array): the points at each, (M, N, 3), to the bit what one pose
+    at a time gives (one stacked product, the same BLAS arithmetic), so that a many-pose answer such as
+    sim.sampling.in_some_view_many agrees with its one-pose reference at the edges."""
     P = np.asarray(points_top, dtype=float).reshape(-1, 3)
-    return P @ rot_z(yaw).T + np.array([x, y, z])
+    return P @ rot_z(yaw).swapaxes(-1, -2) + np.array([x, y, z]).T[..., None, :]
