@@ -8,7 +8,7 @@ from sim.render import Occluder, PlacedVehicle
 from sim.scene import ROAD_HALF_WIDTH
 from toptag.camera import Camera
 from toptag.geometry import vehicle_to_world
-from toptag.rsu.regions import thinnest_cell_px, thinnest_cell_px_many
+from toptag.rsu.regions import thinnest_cell_px_many
 from toptag.vehicle import Vehicle
 
 SECTOR_HALF_ANGLE = np.deg2rad(30.0)  # around the RSU heading: the intersection quarter nearest to it
@@ -30,21 +30,43 @@ def camera_heading(camera: Camera) -> float:
 # with cells under 1.25 px, about two thirds at 1.5-1.625 px and nearly all from 1.75 px on; the shortest
 # side does not separate them (a grazing tag turned 45 degrees keeps long sides).
 DECODABLE_CELL_PX = 1.75
+# A plate counts as whole in the image when all its corners are at least this far (px) inside the image's
+# edge; a single constant, so that the sampling, the site check and the monitor's "in view" say the same.
+PLATE_MARGIN_PX = 2.0
 
 
-def visible_tags(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0, min_cell_px: float = 0.0) -> list[int]:
+def tags_seen(camera: Camera, plates: np.ndarray, tags: np.ndarray, margin_px: float = PLATE_MARGIN_PX,
+              min_cell_px: float = DECODABLE_CELL_PX) -> np.ndarray:
+    """The rule of a tag seen, for any number of tags at once: plates and tags (..., 4, 3) are the world
+    corners of each tag's printed plate (with its white border) and of its black square; True (...) where
+    the whole plate is in front of the camera and inside its image by margin_px, and the tag's cells are at
+    least min_cell_px tall in it (0: not asked). Occlusion not considered. visible_tags (one pose) and
+    in_some_view_many (many) both ask this, so that they cannot drift apart."""
+    corners = plates.reshape(-1, 3)
+    whole = (camera.to_camera(corners)[:, 2] > 0) & camera.in_image(camera.project(corners), margin_px)
+    ok = whole.reshape(plates.shape[:-1]).all(axis=-1)
+    if min_cell_px > 0 and ok.any():  # one pose's tags are often all out of view: skip their cells then
+        ok &= thinnest_cell_px_many(camera.project(tags.reshape(-1, 3))).reshape(ok.shape) >= min_cell_px
+    return ok
+
+
+def _roof_corners(vehicle: Vehicle, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The world corners of every tag's plate and black square at each of poses (N, 4): two (N, T, 4, 3)."""
+    shape = (len(poses), len(vehicle.tag_ids), 4, 3)
+    return tuple(vehicle_to_world(np.stack([corners(t) for t in vehicle.tag_ids]), *poses.T).reshape(shape)
+                 for corners in (vehicle.plate_corners, vehicle.tag_corners))
+
+
+def visible_tags(camera: Camera, pv: PlacedVehicle, margin_px: float = PLATE_MARGIN_PX,
+                 min_cell_px: float = 0.0) -> list[int]:
     """The tags whose whole printed plate (with its white border) projects inside the image and whose
-    cells are at least min_cell_px tall in it (occlusion not considered)."""
-    seen = []
-    for tid in pv.vehicle.tag_ids:
-        world = vehicle_to_world(pv.vehicle.plate_corners(tid), pv.x, pv.y, pv.yaw, pv.roof_z)
-        if np.all(camera.to_camera(world)[:, 2] > 0) and np.all(camera.in_image(camera.project(world), margin_px)):
-            if min_cell_px <= 0 or thinnest_cell_px(camera.project(pv.tag_corners_world(tid))) >= min_cell_px:
-                seen.append(tid)
-    return seen
+    cells are at least min_cell_px tall in it (tags_seen; the default asks only the first)."""
+    plates, tags = _roof_corners(pv.vehicle, np.array([[pv.x, pv.y, pv.yaw, pv.roof_z]]))
+    ok = tags_seen(camera, plates[0], tags[0], margin_px, min_cell_px)
+    return [tid for tid, seen in zip(pv.vehicle.tag_ids, ok) if seen]
 
 
-def in_some_view(cameras, pv: PlacedVehicle, min_tags: int = 2, margin_px: float = 2.0,
+def in_some_view(cameras, pv: PlacedVehicle, min_tags: int = 2, margin_px: float = PLATE_MARGIN_PX,
                  min_cell_px: float = DECODABLE_CELL_PX) -> bool:
     """At least min_tags of the vehicle's tags are decodable in one of the cameras' images (whole inside
     it, cells at least min_cell_px tall): where an RSU can fix it (occlusion not considered)."""
@@ -52,24 +74,19 @@ def in_some_view(cameras, pv: PlacedVehicle, min_tags: int = 2, margin_px: float
                                   min_cell_px)[0])
 
 
-def in_some_view_many(cameras, vehicle: Vehicle, poses, min_tags: int = 2, margin_px: float = 2.0,
+def in_some_view_many(cameras, vehicle: Vehicle, poses, min_tags: int = 2, margin_px: float = PLATE_MARGIN_PX,
                       min_cell_px: float = DECODABLE_CELL_PX) -> np.ndarray:
     """in_some_view for many poses of one vehicle at once: poses (N, 4) of x, y, yaw, roof z; (N,) bools.
     One projection per camera for all of them (a pose at a time costs ~0.3 ms of Python)."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 4)
-    plates = vehicle_to_world(np.stack([vehicle.plate_corners(t) for t in vehicle.tag_ids]), *poses.T).reshape(-1, 3)
-    tags = vehicle_to_world(np.stack([vehicle.tag_corners(t) for t in vehicle.tag_ids]), *poses.T).reshape(-1, 3)
+    plates, tags = _roof_corners(vehicle, poses)
     seen = np.zeros(len(poses), dtype=bool)
     for camera in cameras:
-        whole = (camera.to_camera(plates)[:, 2] > 0) & camera.in_image(camera.project(plates), margin_px)
-        ok = whole.reshape(len(poses), -1, 4).all(axis=2)
-        if min_cell_px > 0:
-            ok &= thinnest_cell_px_many(camera.project(tags)).reshape(ok.shape) >= min_cell_px
-        seen |= ok.sum(axis=1) >= min_tags
+        seen |= tags_seen(camera, plates, tags, margin_px, min_cell_px).sum(axis=1) >= min_tags
     return seen
 
 
-def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = 2.0) -> bool:
+def plates_in_view(camera: Camera, pv: PlacedVehicle, margin_px: float = PLATE_MARGIN_PX) -> bool:
     """Every tag's printed plate projects inside the image."""
     return len(visible_tags(camera, pv, margin_px)) == len(pv.vehicle.tag_ids)
 

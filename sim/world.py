@@ -42,7 +42,7 @@ from sim.image_model import ImageModel
 from sim.motion import Trajectory, bus_trajectory
 from sim.raster import raster_for
 from sim.render import Occluder, PlacedVehicle, render_jpeg
-from sim.sampling import footprints_overlap, visible_tags
+from sim.sampling import PLATE_MARGIN_PX, footprints_overlap, visible_tags
 from sim.scenario import BusEntry, Leg, Scenario, TruckEntry, leg_seed
 from toptag.camera import Camera
 from toptag.inputs import InputError
@@ -389,7 +389,7 @@ class World:
                 out.append(Occluder(e.length, e.width, e.height, s.x, s.y, s.yaw, s.speed, s.yaw_rate, e.color))
         return out
 
-    def tags_in_view(self, rsu_id: str, t_ns: int, margin_px: float = 2.0) -> dict[str, list[int]]:
+    def tags_in_view(self, rsu_id: str, t_ns: int, margin_px: float = PLATE_MARGIN_PX) -> dict[str, list[int]]:
         """Per bus on the road: the tags whose whole printed plate projects inside the RSU's image
         (trucks' occlusion not considered)."""
         cam = self.camera(rsu_id)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sim.render import PlacedVehicle
-from sim.sampling import DECODABLE_CELL_PX, in_some_view, visible_tags
+from sim.sampling import DECODABLE_CELL_PX, PLATE_MARGIN_PX, in_some_view, tags_seen, visible_tags
 from sim.scene import rsu_camera, rsu_cameras
 from sim.site_check import SiteCheck
 from sim.scenario import bundled_scenario_path
@@ -116,6 +116,31 @@ def test_a_tag_whole_in_the_image_but_few_pixels_across_is_not_decodable():
     assert in_some_view([cam], near)
 
 
+@pytest.mark.unit
+def test_a_tag_is_seen_with_its_whole_plate_inside_the_margin_and_cells_tall_enough():
+    """sim.sampling.tags_seen, the rule visible_tags and in_some_view_many both ask, at its edges: a plate
+    corner just inside or just outside PLATE_MARGIN_PX, cells just over or under DECODABLE_CELL_PX, a
+    plate behind the camera that projects into the image all the same."""
+    cam = rsu_camera("sw", dist=Camera.load(DEMO / "rsu-sw.json").dist)
+
+    def world(centre, half):  # corners on the roof plane z = 3 m seen at a pixel square
+        px = np.asarray(centre) + half * np.array([[-1, 1], [1, 1], [1, -1], [-1, -1]])
+        return cam.backproject_to_plane(px, 3.0)
+
+    left = -0.5 + PLATE_MARGIN_PX
+    inside = world((left + 0.01 + 20, 300), 20)
+    outside = world((left - 0.01 + 20, 300), 20)
+    c = cam.center
+    behind = 2 * c - world((480, 360), 20)
+    tall, short = world((400, 300), 4 * (DECODABLE_CELL_PX + 0.01)), world((400, 300), 4 * (DECODABLE_CELL_PX - 0.01))
+    assert np.abs(cam.project(inside)[:, 0].min() - (left + 0.01)) < 1e-6  # the corners are where we meant
+    plates = np.stack([inside, outside, behind, world((400, 300), 30), world((400, 300), 30)])
+    tags = np.stack([tall, tall, tall, tall, short])
+    assert tags_seen(cam, plates, tags).tolist() == [True, False, False, True, False]
+    assert tags_seen(cam, plates, tags, min_cell_px=0.0).tolist() == [True, False, False, True, True]
+    assert tags_seen(cam, plates[None], tags[None]).shape == (1, 5)
+
+
 @pytest.mark.integration
 def test_site_check_names_each_problem_and_warns_of_uncovered_intersections(tmp_path):
     site = tmp_path / "site"
@@ -164,7 +189,7 @@ def test_a_folder_without_site_json_is_one_line(tmp_path):
 @pytest.mark.unit
 def test_many_poses_are_placed_in_the_views_as_one_at_a_time():
     """in_some_view_many (the monitor's "in view" over seconds of poses at once) says what each pose's own
-    projection of every plate says (visible_tags, a tag at a time: whole in the image, and decodable), at
+    projection of every plate says (visible_tags, one pose at a time: whole in the image, and decodable), at
     the views' edges too."""
     import numpy as np
 
