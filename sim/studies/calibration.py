@@ -13,8 +13,8 @@ Intrinsics (per trial): `--views` views of the board README recommends (toptag/d
 board_charuco_a0.json: ChArUco 24 × 17 squares of 48 mm, 36 mm DICT_4X4_250 markers, 1.15 × 0.82 m: A0
 on a rigid plate) 0.6-1.0 m from the camera, tilted up to 45°, aimed over the whole image and into its
 corners (sim.targets.board_poses), detected and calibrated as `toptag calibrate intrinsics` does.
-Measured: the focal length's relative error, and the undistortion error (cv2.undistortPoints with the
-estimate vs the truth, each in its own camera matrix) over the image area the views covered. Bound: the
+Measured: the focal length's relative error, and the undistortion error (the camera model's undistortion
+with the estimate vs the truth, each in its own camera matrix) over the image area the views covered. Bound: the
 Cramér–Rao bound of the same problem (the detected corners' views at their true poses, corner noise
 measured as detected minus projected truth), for fx and for the undistortion at every covered pixel.
 Targets: |focal error| ≤ 0.05 %, undistortion ≤ 0.3 px over the covered area, in every trial.
