@@ -70,8 +70,6 @@ from toptag.fusion.state import (
     ST_GYRO_BIAS,
     ST_SPEED,
     ST_WHEEL_SCALE,
-    ST_X,
-    ST_Y,
     ST_YAW,
     ST_YAW_RATE,
     FusedState,
@@ -89,6 +87,10 @@ _NO_BIAS_ROOT = np.zeros((BIAS_DIM, BIAS_DIM))  # kernels.fix_model's L without 
 _Z33 = np.zeros((3, 3))  # kernels.fix_step's B without a bias share
 _NO_RECORD = np.zeros((kernels.DA_LEN, 3, 3))  # ... and its drift arguments without the detector
 _NO_FLOORS, _NO_CONSTS = np.zeros((2, 3, 3)), np.zeros(4)
+# outcome counts' keys Health reads (FixOutcome's .value is a property: not read at every estimate)
+_REJECTED, _TOO_OLD, _BEFORE_START, _FUTURE, _REFUSED = (o.value for o in (
+    FixOutcome.REJECTED_GATE, FixOutcome.TOO_OLD, FixOutcome.BEFORE_START, FixOutcome.FUTURE,
+    FixOutcome.REFUSED_FLAGGED))
 
 
 def _eye(n: int) -> np.ndarray:
@@ -333,7 +335,7 @@ class BusFilter:
         self._archived: dict[str, int] = count_outcomes([])
         self._archived_src: dict[str, dict[str, int]] = {}
         self._archived_flagged = 0
-        self._totals_memo: tuple[dict[str, int], int] | None = None  # _totals until an outcome changes
+        self._totals_memo: tuple | None = None  # _totals until an outcome changes
         # The buffer's fixes by outcome and from flagged RSUs, kept as decisions change (not counted over the
         # ~80 buffered fixes at every estimate after a fix)
         self._buffered = count_outcomes([])
@@ -472,6 +474,10 @@ class BusFilter:
             base = self._steps[k]
         if t_ns == base.t:
             x, P, g = base.x, base.P, base.g
+        elif base is head and (not self._fix_t or self._fix_t[-1] <= head.t):  # no fix pending: one call
+            x, g = head.x, head.g
+            x, P = kernels.extrapolate(x, head.P, s_from_ns(t_ns - head.t), head.u[1] if head.u is not None else 0.0,
+                                       self._q, len(g.clocks))
         else:
             x, P, g, _ = self._advance(base.x, base.P, base.g, base.t, base.u, t_ns, record=False)
             if base is head:
@@ -492,19 +498,26 @@ class BusFilter:
             return P
         return kernels.unmeasured_motion(P, float(x[ST_SPEED]), float(x[ST_YAW]), self._q, tau)
 
-    def _totals(self) -> tuple[dict[str, int], int]:
-        """Fix outcome counts and fixes from flagged RSUs: the archived ones plus the buffer's (not to be
-        modified: kept until a fix is added, decided again or archived, as every estimate reads them)."""
+    def _totals(self) -> tuple[dict[str, int], int, tuple[int, ...]]:
+        """Fix outcome counts, fixes from flagged RSUs, and Health's counts of them (accepted, rejected,
+        too_old, future, other): the archived ones plus the buffer's (not to be modified: kept until a fix
+        is added, decided again or archived, as every estimate reads them)."""
         if self._totals_memo is None:
             buffered = self._buffered
-            self._totals_memo = ({k: n + buffered[k] for k, n in self._archived.items()},
-                                 self._archived_flagged + self._buffered_flagged)
+            counts = {k: n + buffered[k] for k, n in self._archived.items()}
+            accepted = applied_count(counts)
+            rejected = counts[_REJECTED]
+            too_old = counts[_TOO_OLD] + counts[_BEFORE_START]
+            future = counts[_FUTURE]
+            other = sum(counts.values()) - accepted - rejected - too_old - future - counts[_REFUSED]
+            self._totals_memo = (counts, self._archived_flagged + self._buffered_flagged,
+                                 (accepted, rejected, too_old, future, other))
         return self._totals_memo
 
     def counters(self) -> dict:
         """Counts of fix outcomes (final decisions), per source as well, plus IMU counts."""
         self._ensure_clean()
-        total, flagged = self._totals()
+        total, flagged, _ = self._totals()
         total = dict(total)
         per_src: dict[str, dict[str, int]] = {s: dict(v) for s, v in self._archived_src.items()}
         for r in self._fix_recs:
@@ -923,7 +936,8 @@ class BusFilter:
         XP, blk, info = kernels.fix_step(
             x, P, _NO_BIAS_ROOT if L is None else L, R, R_drift, _Z33 if calib is None else calib,
             _NO_RECORD if prev is None else prev, self._q, self._cap, floors, consts, np.array((
-                s_from_ns(fix.t_ns - t) if fix.t_ns > t else 0.0, accel, i, -1 if L is None else self._bias_index(g, rsu),
+                s_from_ns(fix.t_ns - t) if fix.t_ns > t else 0.0, accel, i,
+                -1 if L is None else self._bias_index(g, rsu),
                 fix.x, fix.y, fix.yaw, self._gate_thr, self._freeze_lo(g, n), n, len(g.clocks), t_end is not None,
                 s_from_ns(t_end - fix.t_ns) if t_end is not None and t_end > fix.t_ns else 0.0, dt_imu, has_u,
                 u[0] if has_u else 0.0, u[2] if has_u and u[2] is not None else 0.0, has_u and u[2] is not None,
@@ -1163,13 +1177,7 @@ class BusFilter:
             status = "degraded"
         else:
             status = "ok"
-        counts, flagged_fixes = self._totals()
-        accepted = applied_count(counts)
-        rejected = counts[FixOutcome.REJECTED_GATE.value]
-        too_old = counts[FixOutcome.TOO_OLD.value] + counts[FixOutcome.BEFORE_START.value]
-        future = counts[FixOutcome.FUTURE.value]
-        refused = counts[FixOutcome.REFUSED_FLAGGED.value]
-        other = sum(counts.values()) - accepted - rejected - too_old - future - refused
+        _, flagged_fixes, (accepted, rejected, too_old, future, other) = self._totals()
         delay = math.nan if g.last_delay_ns is None else s_from_ns(g.last_delay_ns)
         rx = math.nan if self._last_rx_delay_ns is None else s_from_ns(self._last_rx_delay_ns)
         health = Health(status, since, delay, g.last_source, rx, rejected, g.consecutive, accepted,
@@ -1177,8 +1185,7 @@ class BusFilter:
                         from_flagged_rsu=flagged_fixes, unknown_clock=self._unknown_clock, other=other,
                         flagged_rsus=tuple(sorted(k for k, r in g.rsus.items() if r.flagged)))
         n = STATE_DIM
-        return FusedState(t_ns, float(x[ST_X]), float(x[ST_Y]), float(x[ST_YAW]), float(x[ST_SPEED]), float(x[ST_YAW_RATE]),
-                         float(x[ST_GYRO_BIAS]), float(x[ST_WHEEL_SCALE]), P[:3, :3].copy(), P[:n, :n].copy(), health)
+        return FusedState(t_ns, *x[:n].tolist(), P[:3, :3].copy(), P[:n, :n].copy(), health)  # its fields: STATE_NAMES
 
     # ------------------------------------------------------------------ per RSU
     def rsu_assessments(self) -> dict[str, RsuAssessment]:

@@ -362,7 +362,8 @@ def capped_d2(HPHt, R, cap, off_var, nu):
 # fix_step's scalars in one array `s` (a call converts one argument, not twenty-five: FS_*), and its small
 # results in one array `info` (FI_*)
 FS_DT, FS_A, FS_I, FS_J, FS_X, FS_Y, FS_YAW, FS_THR, FS_LO, FS_HI, FS_CLOCKS, FS_TAIL, FS_DT2, FS_DT_IMU, FS_HAS_U, \
-    FS_GYRO, FS_WHEEL, FS_HAS_WHEEL, FS_FREEZE, FS_DRIFT, FS_W, FS_VIEW, FS_FIRST, FS_VIEW_FIRST, FS_VX, FS_VY = range(26)
+    FS_GYRO, FS_WHEEL, FS_HAS_WHEEL, FS_FREEZE, FS_DRIFT, FS_W, FS_VIEW, FS_FIRST, FS_VIEW_FIRST, FS_VX, \
+    FS_VY = range(26)
 FS_LEN = 26
 FI_D2, FI_OK, FI_VAR_I, FI_DRIFT_OK, FI_XY = 0, 1, 2, 3, 4
 FI_LEN = 6
@@ -453,6 +454,14 @@ def unmeasured_motion(P, v, th, q, tau):
         Pn[col, 1] += c1
     Pn[3, 3] += qj * t3 / 3
     return Pn
+
+
+@compiled
+def extrapolate(x, P, dt, a, q, n_clocks):
+    """A prediction dt seconds beyond the newest IMU sample (filter.estimate): predict, then unmeasured_motion
+    over the same dt, in one call (the bus agent asks for one every 20 ms)."""
+    xn, Pn = predict(x, P, dt, a, q, n_clocks)
+    return xn, unmeasured_motion(Pn, xn[3], xn[2], q, dt)
 
 
 @compiled
@@ -632,6 +641,21 @@ def drift_deviation(m, C, Bc, Ms, Cs, Bcs):
     return d, chi2(d, Cn + Cb), mo, Cn, Cb
 
 
+@compiled
+def drift_deviations(blk, blks):
+    """drift_deviation of a record against others given as their drift_accumulate records (DA_ layout: m, C and
+    the bias covariance in them), its results in one array (d, their mean and (T_d, 0, 0) as the rows of [0],
+    the noise covariance [1], the bias covariance [2]): one array in, one out (each array boxed costs)."""
+    k = blks.shape[0]
+    Ms, Cs, Bcs = np.empty((k, 3)), np.empty((k, 3, 3)), np.empty((k, 3, 3))
+    for j in range(k):
+        Ms[j], Cs[j], Bcs[j] = blks[j, DA_VEC, 1], blks[j, DA_C], blks[j, DA_BIAS]
+    d, T_d, mo, Cn, Cb = drift_deviation(blk[DA_VEC, 1].copy(), blk[DA_C].copy(), blk[DA_BIAS].copy(), Ms, Cs, Bcs)
+    out = np.zeros((3, 3, 3))
+    out[0, 0], out[0, 1], out[0, 2, 0], out[1], out[2] = d, mo, T_d, Cn, Cb
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel for the types the filter calls them with."""
     n = 11
@@ -651,6 +675,7 @@ def warm_up() -> None:
     PHt = P2 @ H.T
     kalman(x2, P2, PHt, H @ PHt + np.eye(3), np.zeros(3), 7, n)
     unmeasured_motion(P2, 5.0, 0.3, q, 0.004)
+    extrapolate(x2, P2, 0.004, 0.1, q, 4)
     pose = np.array([0.1, 0.2, 0.3])
     L = np.eye(3) * 0.01
     for i, j in ((8, n - 3), (8, -1), (-1, -1)):
@@ -663,15 +688,17 @@ def warm_up() -> None:
     for view, first in ((True, True), (True, False), (False, True), (False, False)):
         drift_accumulate(pose, e3, z3, e3, prev, floors, consts, 0.9, np.zeros(4), view, first, first)
     drift_deviation(pose, e3, e3, np.zeros((2, 3)), np.zeros((2, 3, 3)), np.zeros((2, 3, 3)))
+    drift_deviations(prev, np.stack((prev, prev)))
     for tail in (0.0, 1.0):
         for i, j, has_u in ((8, n - 3, 1.0), (8, -1, 0.0), (-1, -1, 1.0)):
             sc = np.zeros(FS_LEN)
             sc[[FS_DT, FS_I, FS_J, FS_THR, FS_LO, FS_HI, FS_CLOCKS, FS_TAIL, FS_DT2, FS_DT_IMU, FS_HAS_U, FS_FREEZE,
-                FS_DRIFT, FS_VIEW, FS_FIRST, FS_VIEW_FIRST]] = (0.004, i, j, 1e9, n, n, 4, tail, 0.006, 0.01, has_u, n, 1.0,
-                                                                 1.0, 1.0, 1.0)
+                FS_DRIFT, FS_VIEW, FS_FIRST, FS_VIEW_FIRST]] = (0.004, i, j, 1e9, n, n, 4, tail, 0.006, 0.01, has_u, n,
+                                                                 1.0, 1.0, 1.0, 1.0)
             fix_step(x2, P2, L, e3, e3, z3, prev, q, np.ones(3), floors, consts, sc)
     sym_sqrt(e3)
 
 
-__all__ = ["Q_LEN", "capped_d2", "fix_model", "fix_step", "imu_step", "imu_steps", "imu_update", "kalman", "mahalanobis",
-           "pose_before", "predict", "sym_sqrt", "unmeasured_motion", "warm_up", "wrap"]
+__all__ = ["Q_LEN", "capped_d2", "extrapolate", "fix_model", "fix_step", "imu_step", "imu_steps", "imu_update",
+           "kalman", "mahalanobis", "pose_before", "predict", "py_hypot", "sym_sqrt", "unmeasured_motion", "warm_up",
+           "wrap"]

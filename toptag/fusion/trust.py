@@ -267,7 +267,8 @@ class DriftRule:
         blk, ok = kernels.drift_accumulate(
             np.asarray(nu, dtype=float), np.asarray(S, dtype=float), _Z33 if B is None else np.asarray(B, dtype=float),
             _Z33 if R is None else np.asarray(R, dtype=float), self.previous(rec), *self.constants, w,
-            np.array((*(_NOWHERE if xy is None else xy), *(rec.view_xy or _NOWHERE)), dtype=float), view, first, view_first)
+            np.array((*(_NOWHERE if xy is None else xy), *(rec.view_xy or _NOWHERE)), dtype=float), view, first,
+            view_first)
         return self.accumulated(rec, t_ns, blk, ok, view, xy)
 
     def fading(self, rec: RsuRecord, t_ns: int) -> tuple[bool, float, bool]:
@@ -355,9 +356,15 @@ class DriftRule:
         """(d, T_d, the others' mean, n, (d, noise covariance, n) in this filter alone) of one record
         against others: d and n with the earlier passes' deviations added (when kept), T_d against the
         noise and the biases of both."""
-        d, T_d, mo, Cn, Cb = kernels.drift_deviation(  # compiled: this runs 1 + k times per decision
-            rec.m, rec.C, self.bias_cov(rec), np.array([o.m for o in others]), np.array([o.C for o in others]),
-            np.array([self.bias_cov(o) for o in others]))
+        # compiled: this runs 1 + k times per decision; from the records' drift_accumulate blocks where all have
+        # one (every record the filter makes with an innovation), else from their fields
+        if rec.block is not None and all(o.block is not None for o in others):
+            out = kernels.drift_deviations(rec.block, np.array([o.block for o in others]))
+            d, mo, T_d, Cn, Cb = out[0, 0], out[0, 1], float(out[0, 2, 0]), out[1], out[2]
+        else:
+            d, T_d, mo, Cn, Cb = kernels.drift_deviation(
+                rec.m, rec.C, self.bias_cov(rec), np.array([o.m for o in others]), np.array([o.C for o in others]),
+                np.array([self.bias_cov(o) for o in others]))
         current = (d, Cn, rec.n_eff)
         n = rec.n_eff
         if rec.past is not None and self.past_window_s > 0:
