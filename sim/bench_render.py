@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 
 from sim.image_model import ImageModel
-from sim.patterns import grid_size
 from sim.raster import raster_for
 from sim.render import PlacedVehicle, render
+from sim.sampling import visible_tags
 from sim.scene import bundled_vehicle, rsu_camera
 
 
@@ -96,8 +96,6 @@ def detection_rates(distances=(5, 10, 15, 18, 20, 22), trials: int = 50, width: 
     cam = rsu_camera("sw", width, height)
     bus = bundled_vehicle("bus_double")
     det = TagDetector(settings=settings)
-    n_cells = grid_size(bus.family)
-    plate_scale = n_cells / (n_cells - 2)  # black square corners -> white plate corners
     out = []
     for d in distances:
         found = in_view = found_in_view = both = 0
@@ -114,11 +112,10 @@ def detection_rates(distances=(5, 10, 15, 18, 20, 22), trials: int = 50, width: 
                 raw = det.detect_raw(img)
             obs = {o.tag_id: o for o in assign_to_vehicles(raw, cam, [bus])[bus.id]}
             both += len(obs) == len(bus.tag_ids)
+            whole = visible_tags(cam, pv, margin_px=0.0)
             for tid in bus.tag_ids:
                 w = pv.tag_corners_world(tid)
-                centre = w.mean(axis=0)
-                plate = centre + (w - centre) * plate_scale
-                visible = bool(cam.in_image(cam.project(plate)).all())
+                visible = tid in whole
                 in_view += visible
                 found += tid in obs
                 found_in_view += visible and tid in obs
