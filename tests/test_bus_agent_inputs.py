@@ -1,17 +1,19 @@
 """The bus agent takes its inputs in at its step: IMU samples, GNSS and PoseFixes wait in Zenoh's channels
 (filled without a Python thread per message) and each step feeds everything received since the last one
-to the filter (IMU and GNSS in arrival order, fixes in capture order) before it estimates. A real agent on
+to the filter (IMU and GNSS in arrival order, fixes once they are old enough, in capture order) before it
+estimates. A real agent on
 a real Zenoh peer session; the test session publishes as the bus's sensors and an RSU would."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
 
 from protocol import keys
-from protocol.messages import GnssFix, Imu
+from protocol.messages import GnssFix, Imu, PoseFix
 from protocol.transport import MessagePublisher, subscribe_messages
-from services.bus.agent import BusAgent
+from services.bus.agent import BusAgent, main as agent_main
 from toptag.site import MapFile
 from toptag.vehicle import Vehicle
 from toptag.waiting import wait_until
@@ -20,6 +22,7 @@ pytestmark = pytest.mark.integration
 
 DEMO = Path(__file__).resolve().parents[1] / "toptag" / "data" / "demo"
 T0 = 1_700_000_000_000_000_000
+NS = 1_000_000_000
 
 
 def test_the_agent_feeds_what_arrived_to_its_filter_at_its_step(peer_pair):
@@ -53,3 +56,45 @@ def test_the_agent_feeds_what_arrived_to_its_filter_at_its_step(peer_pair):
         gnss.close()
     finally:
         agent.close()
+
+
+def test_the_agent_holds_each_fix_until_it_is_old_enough(peer_pair, samples):
+    a, b = peer_pair
+    vehicle = Vehicle.load(DEMO / "bus-42.json")
+    map_file = MapFile.load(DEMO / "map.json")
+    hold_s = 60  # no fix of this test comes of age while it runs: it releases them itself, at a given time
+    agent = BusAgent(b, vehicle, map_file, fix_hold_ms=1000 * hold_s)
+    try:
+        bus, inter = vehicle.id, map_file.intersections[0]
+        agent._enter(inter)  # subscribes to the bus's fixes at the intersection
+        template = samples["PoseFix"]
+        seen = []
+        watch = subscribe_messages(b, keys.pose_fix(inter.id, bus, keys.ANY), PoseFix, seen.append)
+        pub = MessagePublisher(a, keys.pose_fix(inter.id, bus, template.rsu_id), PoseFix)
+        assert pub.wait_matching(30)
+        now = time.time_ns()
+        # captured: now (held), long ago (released), a second ago (held), an hour ahead (its clock is off: released)
+        stamps = [now, now - 2 * hold_s * NS, now - NS, now + 3600 * NS]
+        for k, t in enumerate(stamps):
+            pub.put(template.model_copy(update={"bus_id": bus, "intersection_id": inter.id, "capture_time_ns": t,
+                                                "publish_time_ns": t, "frame_seq": k}))
+        assert wait_until(lambda: len(seen) == len(stamps), 60)
+        agent.take_inputs()
+        assert agent.fixes_received == 4 and len(agent.fix_latency_ns) == 4  # arrival: when taken in
+        assert agent.filter.counters()["fixes"] == 2
+        assert sorted(f.t_ns for f in agent._held) == [now - NS, now]
+        agent._release_fixes(now + (hold_s - 1) * NS)  # the one captured a second before now has come of age
+        assert agent.filter.counters()["fixes"] == 3 and [f.t_ns for f in agent._held] == [now]
+        agent._release_fixes(now + hold_s * NS)
+        assert agent.filter.counters()["fixes"] == 4 and agent._held == []
+        watch.close()
+        pub.close()
+    finally:
+        agent.close()
+
+
+@pytest.mark.parametrize("hold", ["-5", "nan", "inf"])
+def test_a_bad_fix_hold_is_one_line_before_any_session(hold, capsys):
+    code = agent_main(["--vehicle", str(DEMO / "bus-42.json"), "--map", str(DEMO / "map.json"), "--fix-hold-ms", hold])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.splitlines() == [f"toptag bus: --fix-hold-ms must be a finite number >= 0, got {float(hold)}"]

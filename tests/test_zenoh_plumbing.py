@@ -250,28 +250,6 @@ def test_drained_receiver_delivers_what_waited_in_order_and_a_full_ring_drops_th
     watch.close()
 
 
-def test_drained_receiver_delivers_in_the_order_asked(peer_pair, samples):
-    """deliver(order=key): what one drain took, sorted by key (the bus agent's fixes: capture time), ties
-    in arrival order."""
-    a, b = peer_pair
-    imu = samples["Imu"]
-    key = key_for(imu)
-    sub = subscribe_messages(b, key, Imu, None, MessageCounters(), capacity=16, drop_oldest=True)
-    watcher = Inbox()
-    watch = subscribe_messages(b, key, Imu, watcher)
-    pub = raw_publisher(a, key)
-    assert wait_until(lambda: pub.matching_status.matching, 30)
-    sent = [(3, 1), (1, 2), (2, 3), (1, 4)]  # (t_ns, seq)
-    for t, seq in sent:
-        pub.put(encode(imu.model_copy(update={"t_ns": t, "seq": seq})))
-    assert watcher.wait(len(sent), 60)
-    got = []
-    assert wait_until(lambda: sub.deliver(got.append, order=lambda m: m.t_ns) >= 0 and len(got) == len(sent), 60)
-    assert [(m.t_ns, m.seq) for m in got] == [(1, 2), (1, 4), (2, 3), (3, 1)]
-    sub.close()
-    watch.close()
-
-
 # ---- latest-only frames -----------------------------------------------------------------------
 
 def _frame(seq: int, size: int = 1000, rsu: str = "rsu-sw") -> Frame:

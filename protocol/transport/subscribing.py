@@ -246,13 +246,11 @@ class SafeSubscriber(Generic[M]):
                          "consumer fell behind and the oldest were dropped (%s)", self._name, self.key, taken,
                          f"{dropped} by seq" if first_seq else "how many unknown: no seq")
 
-    def deliver(self, handler: Callable[[M], Any], order: Callable[[M], Any] | None = None) -> int:
+    def deliver(self, handler: Callable[[M], Any]) -> int:
         """drain() to handler, one message at a time, each call guarded as a callback subscriber's (an
         exception is counted as handler_error and logged, and the next message is delivered); returns how
-        many were delivered. ``order``: a sort key (stable: ties keep their arrival order) instead of arrival."""
+        many were delivered."""
         msgs = self.drain()
-        if order is not None:
-            msgs.sort(key=order)
         for msg in msgs:
             self._call(msg, handler)
         return len(msgs)

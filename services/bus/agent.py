@@ -10,12 +10,13 @@ its drift flag and disagreement) on keys.rsu_diagnosis, which the RSUs and the m
 Approach carries its host's clock (toptag.hostclock).
 
 One thread does the work: its IMU samples, GNSS fixes and PoseFixes wait in Zenoh's channels (filled
-without Python) and each 50 Hz step takes them in (IMU, then GNSS in arrival order, then fixes in capture
-order) before it estimates. A fix's arrival, for the filter's health and the latency log, is when the step took
-it in (up to one output period after it reached the process). The step's output holds the same inputs
-as when a callback thread fed each message to the filter on arrival; it costs one wake-up per step
-instead of one per message (with a thread hop and a GIL hand-off each: most of the agent's CPU at
-100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md). Its Zenoh runs on one thread
+without Python) and each 50 Hz step takes them in (IMU, then GNSS in arrival order, then fixes) before it
+estimates. A fix reaches the filter once it is --fix-hold-ms old (its capture time; FIX_HOLD_MS), the fixes
+of a step in capture order. A fix's arrival, for the filter's health and the latency log, is when the step
+took it in (up to one output period after it reached the process), not when it was released. The step's
+output holds the same inputs as when a callback thread fed each message to the filter on arrival; it costs
+one wake-up per step instead of one per message (with a thread hop and a GIL hand-off each: most of the
+agent's CPU at 100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md). Its Zenoh runs on one thread
 (protocol.transport.ONE_ZENOH_THREAD): no Python waits in Zenoh's threads here, and each message no longer
 passes between Zenoh's rx, tx and net threads (context switches 0.4x, docs/real-time.md).
 """
@@ -52,12 +53,14 @@ from protocol.transport import (
     subscribe_messages,
 )
 from protocol.transport.runner import ServiceSettings, add_service_arguments, run_service
+from toptag.errors import InputError
+from toptag.fix import Fix
 from toptag.fusion import kernels as filter_kernels
 from toptag.fusion.filter import BusFilter, FilterConfig
 from toptag.fusion.presence import IntersectionPresence
 from toptag.hostclock import HostClockProbe
 from toptag.site import IntersectionSpec, MapFile
-from toptag.units import ms_from_ns, s_from_ns
+from toptag.units import ms_from_ns, ns_from_ms, s_from_ns
 from toptag.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
@@ -83,14 +86,14 @@ IMU_QUEUE = 1024
 FIX_QUEUE = 512
 GNSS_QUEUE = 16
 STOP_POLL_S = 0.1  # the step loop sleeps at most this long at a time, so that stop() is seen
-
-
-def _FIX_ORDER(m: PoseFix) -> int:
-    """The fixes one step takes in go to the filter oldest capture first. Their order does not change what it
-    makes of them (it applies every fix at its capture time, in that order, replaying what came after), but
-    a fix older than one already applied makes it apply that one again: one application in seven fewer on
-    `toptag bench bus`'s drive (1851 for 1985, the same estimates to the bit; docs/architecture.md)."""
-    return m.capture_time_ns
+# A fix waits in the agent until it is this old (capture time) and goes to the filter with the others released
+# at that step, in capture order. The filter's result does not depend on the order (it applies every fix at its
+# capture time, replaying what came after), but a fix older than one applied makes it apply that one again, and
+# four RSUs' fixes arrive 100 +- 30 ms after capture, out of order across steps: `toptag bench bus`'s drive took
+# 1851 applications for 1200 fixes released on arrival (capture order within a step), 1507 held 150 ms; the agent
+# 0.86-0.94x of a core beside one that holds none; the fusion study's error 1.01 -> 1.02 cm (a hold of H is
+# a latency of about H with less jitter; docs/real-time.md). 0: every fix at the step that takes it in.
+FIX_HOLD_MS = 150.0
 
 
 class BusSettings(ServiceSettings):
@@ -101,11 +104,12 @@ class BusSettings(ServiceSettings):
 
 class BusAgent:
     def __init__(self, session, vehicle: Vehicle, map_file: MapFile, fused_hz: float = 50.0,
-                 filter_config: FilterConfig | None = None):
+                 filter_config: FilterConfig | None = None, fix_hold_ms: float = FIX_HOLD_MS):
         self.session = session
         self.vehicle = vehicle
         self.bus_id = vehicle.id
         self.fused_period = 1.0 / fused_hz
+        self.fix_hold_ns = ns_from_ms(fix_hold_ms)
         self.filter_config = filter_config or FilterConfig()
         self.presence = IntersectionPresence(map_file)
         self.counters = MessageCounters()
@@ -122,6 +126,7 @@ class BusAgent:
         self._wheel_speed: float | None = None
         self.fix_latency_ns: list[int] = []
         self.fixes_received = 0
+        self._held: list[Fix] = []  # taken in, not yet old enough for the filter (FIX_HOLD_MS)
         # Session state (one intersection at a time).
         self._approach: Approach | None = None
         self._token = None
@@ -143,12 +148,15 @@ class BusAgent:
 
     # ---- inputs (taken in by the step) -------------------------------------------------------------
     def take_inputs(self) -> None:
-        """Everything received since the last call, fed to the filter: IMU, GNSS, then fixes."""
+        """Everything received since the last call, fed to the filter: IMU, GNSS, then the fixes old enough
+        (FIX_HOLD_MS); the others wait for a later call."""
         self._imu_sub.deliver(self._on_imu)
         self._gnss_sub.deliver(self._on_gnss)
-        if self._fix_sub is not None:  # in capture order: the filter replays less (see _FIX_ORDER)
-            now = time.time_ns()
-            self._fix_sub.deliver(lambda m: self._on_fix(m, now), order=_FIX_ORDER)
+        now = time.time_ns()
+        if self._fix_sub is not None:
+            self._fix_sub.deliver(lambda m: self._on_fix(m, now))
+        if self._held:
+            self._release_fixes(now)
 
     def _on_imu(self, m: Imu) -> None:
         with self._lock:
@@ -172,11 +180,25 @@ class BusAgent:
     def _on_fix(self, m: PoseFix, now: int) -> None:
         if m.bus_id != self.bus_id:
             return
+        fix = fix_from_message(m, arrival_ns=now)
         with self._lock:
             self.fixes_received += 1
             self._rsu_intersection[m.rsu_id] = m.intersection_id
             self.fix_latency_ns.append(now - m.capture_time_ns)
-            self.filter.add_fix(fix_from_message(m, arrival_ns=now))
+        self._held.append(fix)
+
+    def _release_fixes(self, now: int) -> None:
+        """The held fixes captured fix_hold_ns ago or earlier to the filter, in its order (Fix.key). One stamped
+        after now is not held either: its RSU's clock is off, and the filter judges it (counted as future)."""
+        young = now - self.fix_hold_ns
+        due = [f for f in self._held if not young < f.t_ns <= now]
+        if not due:
+            return
+        self._held = [f for f in self._held if young < f.t_ns <= now]
+        due.sort(key=lambda f: f.key)
+        with self._lock:
+            for f in due:
+                self.filter.add_fix(f)
 
     # ---- position and sessions ------------------------------------------------------------------
     def position(self, now_ns: int) -> CoarsePosition | None:
@@ -373,6 +395,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vehicle", required=True, help="this bus's vehicle file (its code bag)")
     p.add_argument("--map", required=True, help="map file of intersections")
     p.add_argument("--fused-hz", type=float, default=50.0)
+    p.add_argument("--fix-hold-ms", type=float, default=FIX_HOLD_MS,
+                   help=f"hold each PoseFix until it is this old (capture time) before the filter takes it: fewer "
+                        f"re-applications for a little freshness (default {FIX_HOLD_MS:g}; 0: none)")
     add_service_arguments(p)
     return p
 
@@ -381,12 +406,15 @@ def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
 
     def load() -> tuple[Vehicle, MapFile]:
+        if not (args.fix_hold_ms >= 0 and math.isfinite(args.fix_hold_ms)):
+            raise InputError(f"--fix-hold-ms must be a finite number >= 0, got {args.fix_hold_ms}")
         vehicle = Vehicle.load(args.vehicle)
         keys.imu(vehicle.id)  # the vehicle id must be usable as a bus id on the wire
         return vehicle, MapFile.load(args.map)
 
     return run_service("bus", args, load,
                        lambda session, inputs: BusAgent(session, *inputs, fused_hz=args.fused_hz,
-                                                        filter_config=args.settings.filter),
+                                                        filter_config=args.settings.filter,
+                                                        fix_hold_ms=args.fix_hold_ms),
                        lambda inputs: f"bus {inputs[0].id} ({len(inputs[1].intersections)} intersections known)",
                        settings=BusSettings, zenoh_runtime=ONE_ZENOH_THREAD)
