@@ -174,6 +174,31 @@ def test_filter_matches_its_numpy_reference(name):
                                      err_msg=key)
 
 
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_the_compiled_fix_step_computes_what_the_python_gate_does(name, monkeypatch):
+    """BusFilter._fix_step (one compiled call for a trusted RSU's fix while tracking) and the Python path it
+    short-cuts (_predict, then _apply_fix's gate, update and drift detector) give the same outputs to the bit
+    on the reference's inputs (late fixes, a turned camera flagged, clock offsets, bias blocks), so the fast
+    path cannot drift away from the rules the rest of the filter states."""
+    inp = _inputs(_reference())
+    taken = []
+    fast_step = BusFilter._fix_step
+
+    def counted(self, *args):
+        out = fast_step(self, *args)
+        taken.append(out is not None)
+        return out
+
+    monkeypatch.setattr(BusFilter, "_fix_step", counted)
+    fast = run_filter(inp, CONFIGS[name])
+    monkeypatch.setattr(BusFilter, "_fix_step", lambda self, *args: None)
+    python = run_filter(inp, CONFIGS[name])
+    assert sum(taken) > 0.5 * len(taken) > 100  # the fast path served most applications, not a few
+    assert set(fast) == set(python)
+    for key, want in python.items():
+        np.testing.assert_array_equal(fast[key], want, err_msg=key)  # NaN where NaN, else equal to the bit
+
+
 def test_the_reference_is_not_trivial():
     """The reference exercises what it is meant to: late fixes re-decided, bias blocks and offset slots,
     a flagged RSU, gated and duplicate fixes."""
