@@ -47,7 +47,7 @@ def make_fixes(traj, rng, rsus=("rsu-sw", "rsu-se", "rsu-ne"), rate_hz=10.0, t_f
     return out
 
 
-def drive(flt, imu, arrivals, outputs_every=2, on_output=None):
+def drive(flt, imu, arrivals, outputs_every=2, on_output=None, decide=True):
     """Feed IMU rows and (arrival_ns, fix) in time order; returns {fix key: outcome at arrival}."""
     arrivals = sorted(arrivals, key=lambda a: a[0])
     j = 0
@@ -55,13 +55,13 @@ def drive(flt, imu, arrivals, outputs_every=2, on_output=None):
     for k, (t_ns, g, ax, ay, w) in enumerate(imu.rows()):
         while j < len(arrivals) and arrivals[j][0] < t_ns:
             a, f = arrivals[j]
-            got[(f.t_ns, f.source, f.seq)] = flt.add_fix(f, arrival_ns=a)
+            got[(f.t_ns, f.source, f.seq)] = flt.add_fix(f, arrival_ns=a, decide=decide)
             j += 1
         flt.add_imu(t_ns, g, ax, ay, w)
         if on_output is not None and k % outputs_every == 0 and flt.initialized and t_ns >= flt.buffer_start_ns:
             on_output(t_ns, flt.estimate(t_ns))
     for a, f in arrivals[j:]:  # arriving after the last IMU sample
-        got[(f.t_ns, f.source, f.seq)] = flt.add_fix(f, arrival_ns=a)
+        got[(f.t_ns, f.source, f.seq)] = flt.add_fix(f, arrival_ns=a, decide=decide)
     return got
 
 
@@ -108,6 +108,29 @@ def test_out_of_order_replay_equals_in_order(left_turn):
         assert ca[k] == cb[k], k
     assert ca["rejected_gate"] >= 1  # the spoof, in both orders
     assert pos_err(ea, traj) < 0.05
+
+
+def test_fixes_decided_when_next_asked_give_the_same_estimates(left_turn):
+    """add_fix(decide=False) leaves a buffered fix's decision to the next estimate, taken with the fixes added
+    meanwhile (the steps after the oldest re-run once): every estimate, outcome and count as when each fix is
+    decided on arrival, to the bit, out of order and with a spoof among them."""
+    traj, imu = left_turn
+    fixes = make_fixes(traj, np.random.default_rng(4))
+    fixes.append(fixes[30].replace(x=fixes[30].x + 5.0, seq=10_000, t_ns=fixes[30].t_ns + 3 * MS))
+    rng = np.random.default_rng(5)
+    arrivals = [(f.t_ns + int(rng.uniform(20, 300)) * MS, f) for f in fixes]
+    now, later, outs = BusFilter(), BusFilter(), ([], [])
+    got = [drive(flt, imu, arrivals, outputs_every=3, on_output=lambda t, e, o=o: o.append(e), decide=decide)
+           for flt, o, decide in ((now, outs[0], True), (later, outs[1], False))]
+    assert len(outs[0]) == len(outs[1]) > 100
+    for a, b in zip(*outs):
+        assert np.array_equal(a.state, b.state) and np.array_equal(a.state_cov, b.state_cov), a.t_ns
+        assert a.health == b.health
+    assert now.counters() == later.counters() and now.fix_outcomes() == later.fix_outcomes()
+    assert now.counters()["rejected_gate"] >= 1  # the spoof
+    buffered = [k for k, o in got[0].items() if o not in (FixOutcome.INITIALIZED, FixOutcome.DUPLICATE)]
+    assert {got[1][k] for k in buffered} == {FixOutcome.PENDING}
+    assert FixOutcome.ACCEPTED in {got[0][k] for k in buffered}
 
 
 def test_fix_applied_at_capture_time_not_arrival(left_turn):

@@ -408,10 +408,13 @@ class BusFilter:
         gate = _Gate(TRACKING, t_ns, 0, (), last_trusted_ns=t_ns) if trusted else _Gate(ACQUIRING, None, 0, ())
         self._start(t_ns, np.array([x, y, wrap_angle(yaw)]), P3, gate, speed, speed_sigma)
 
-    def add_fix(self, fix: Fix, arrival_ns: int | None = None) -> FixOutcome:
+    def add_fix(self, fix: Fix, arrival_ns: int | None = None, decide: bool = True) -> FixOutcome:
         """A pose fix (capture time fix.t_ns). `arrival_ns` (or fix.arrival_ns; default the newest
         IMU time) only feeds the health report. Returns the decision taken now; a fix applied in the
-        past may be re-decided when earlier fixes arrive later (counters() has the final word)."""
+        past may be re-decided when earlier fixes arrive later (counters() has the final word).
+        decide=False: a fix the buffer takes is decided when the filter is next asked (estimate, counters,
+        ...), with every fix added meanwhile, and returned PENDING: a bus agent adding a step's fixes so
+        re-runs the steps after the oldest once, not once per fix (the same estimates)."""
         if not isinstance(fix, Fix):  # a wire message goes through protocol.convert.fix_from_message
             raise TypeError(f"add_fix takes a toptag.fix.Fix, not {type(fix).__name__}")
         arrival = arrival_ns if arrival_ns is not None else fix.arrival_ns
@@ -451,7 +454,8 @@ class BusFilter:
             return FixOutcome.PENDING
         k = self._step_index_before(fix.t_ns)  # largest k with t_k < t_fix
         self._dirty = min(self._dirty, k + 1)
-        self._ensure_clean(k + 1)
+        if decide:
+            self._ensure_clean(k + 1)
         return rec.outcome
 
     def estimate(self, t_ns: int | None = None) -> FusedState | None:
