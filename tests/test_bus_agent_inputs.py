@@ -80,13 +80,13 @@ def test_the_agent_holds_each_fix_until_it_is_old_enough(peer_pair, samples):
                                                 "publish_time_ns": t, "frame_seq": k}))
         assert wait_until(lambda: len(seen) == len(stamps), 60)
         agent.take_inputs()
-        assert agent.fixes_received == 4 and len(agent.fix_latency_ns) == 4  # arrival: when taken in
+        assert agent.fixes_received == 4 and len(agent.fix_hold.delays_ns) == 4  # arrival: when taken in
         assert agent.filter.counters()["fixes"] == 2
-        assert sorted(f.t_ns for f in agent._held) == [now - NS, now]
+        assert sorted(f.t_ns for f in agent.fix_hold.held) == [now - NS, now]
         agent._release_fixes(now + (hold_s - 1) * NS)  # the one captured a second before now has come of age
-        assert agent.filter.counters()["fixes"] == 3 and [f.t_ns for f in agent._held] == [now]
+        assert agent.filter.counters()["fixes"] == 3 and [f.t_ns for f in agent.fix_hold.held] == [now]
         agent._release_fixes(now + hold_s * NS)
-        assert agent.filter.counters()["fixes"] == 4 and agent._held == []
+        assert agent.filter.counters()["fixes"] == 4 and agent.fix_hold.held == []
         watch.close()
         pub.close()
     finally:

@@ -11,8 +11,8 @@ Approach carries its host's clock (toptag.hostclock).
 
 One thread does the work: its IMU samples, GNSS fixes and PoseFixes wait in Zenoh's channels (filled
 without Python) and each 50 Hz step takes them in (IMU, then GNSS in arrival order, then fixes) before it
-estimates. A fix reaches the filter once it is --fix-hold-ms old (its capture time; FIX_HOLD_MS), the fixes
-of a step in capture order. A fix's arrival, for the filter's health and the latency log, is when the step
+estimates. A fix reaches the filter once it is about as old as the recent fixes were when they arrived (a high
+quantile of their delays, at most --fix-hold-ms: toptag.fusion.fix_hold), the fixes of a step in capture order. A fix's arrival, for the filter's health and the latency log, is when the step
 took it in (up to one output period after it reached the process), not when it was released. The step's
 output holds the same inputs as when a callback thread fed each message to the filter on arrival; it costs
 one wake-up per step instead of one per message (with a thread hop and a GIL hand-off each: most of the
@@ -54,9 +54,9 @@ from protocol.transport import (
 )
 from protocol.transport.runner import ServiceSettings, add_service_arguments, run_service
 from toptag.errors import InputError
-from toptag.fix import Fix
 from toptag.fusion import kernels as filter_kernels
 from toptag.fusion.filter import BusFilter, FilterConfig
+from toptag.fusion.fix_hold import FixHold
 from toptag.fusion.presence import IntersectionPresence
 from toptag.hostclock import HostClockProbe
 from toptag.site import IntersectionSpec, MapFile
@@ -86,13 +86,8 @@ IMU_QUEUE = 1024
 FIX_QUEUE = 512
 GNSS_QUEUE = 16
 STOP_POLL_S = 0.1  # the step loop sleeps at most this long at a time, so that stop() is seen
-# A fix waits in the agent until it is this old (capture time) and goes to the filter with the others released
-# at that step, in capture order. The filter's result does not depend on the order (it applies every fix at its
-# capture time, replaying what came after), but a fix older than one applied makes it apply that one again, and
-# four RSUs' fixes arrive 100 +- 30 ms after capture, out of order across steps: `toptag bench bus`'s drive took
-# 1851 applications for 1200 fixes released on arrival (capture order within a step), 1507 held 150 ms; the agent
-# 0.86-0.94x of a core beside one that holds none; the fusion study's error 1.01 -> 1.02 cm (a hold of H is
-# a latency of about H with less jitter; docs/real-time.md). 0: every fix at the step that takes it in.
+# The longest a fix waits in the agent before the filter takes it; the hold follows the delays seen, up to this
+# (toptag.fusion.fix_hold: fewer re-applications of fixes for a little freshness). 0: no hold.
 FIX_HOLD_MS = 150.0
 
 
@@ -109,7 +104,7 @@ class BusAgent:
         self.vehicle = vehicle
         self.bus_id = vehicle.id
         self.fused_period = 1.0 / fused_hz
-        self.fix_hold_ns = ns_from_ms(fix_hold_ms)
+        self.fix_hold = FixHold(ns_from_ms(fix_hold_ms))  # the fixes taken in, until the filter takes them
         self.filter_config = filter_config or FilterConfig()
         self.presence = IntersectionPresence(map_file)
         self.counters = MessageCounters()
@@ -124,9 +119,7 @@ class BusAgent:
         self._last_imu_ns: int | None = None
         self._gnss: GnssFix | None = None
         self._wheel_speed: float | None = None
-        self.fix_latency_ns: list[int] = []
         self.fixes_received = 0
-        self._held: list[Fix] = []  # taken in, not yet old enough for the filter (FIX_HOLD_MS)
         # Session state (one intersection at a time).
         self._approach: Approach | None = None
         self._token = None
@@ -149,13 +142,13 @@ class BusAgent:
     # ---- inputs (taken in by the step) -------------------------------------------------------------
     def take_inputs(self) -> None:
         """Everything received since the last call, fed to the filter: IMU, GNSS, then the fixes old enough
-        (FIX_HOLD_MS); the others wait for a later call."""
+        (self.fix_hold); the others wait for a later call."""
         self._imu_sub.deliver(self._on_imu)
         self._gnss_sub.deliver(self._on_gnss)
         now = time.time_ns()
         if self._fix_sub is not None:
             self._fix_sub.deliver(lambda m: self._on_fix(m, now))
-        if self._held:
+        if self.fix_hold.held:
             self._release_fixes(now)
 
     def _on_imu(self, m: Imu) -> None:
@@ -184,24 +177,17 @@ class BusAgent:
         with self._lock:
             self.fixes_received += 1
             self._rsu_intersection[m.rsu_id] = m.intersection_id
-            self.fix_latency_ns.append(now - m.capture_time_ns)
-        self._held.append(fix)
+        self.fix_hold.add(fix, now)
 
     def _release_fixes(self, now: int) -> None:
-        """The held fixes captured fix_hold_ns ago or earlier to the filter, in its order (Fix.key). One stamped
-        after now is not held either: its RSU's clock is off, and the filter judges it (counted as future).
-        They are decided together when the filter is next asked (the step's estimate): an instant's fixes from
-        several RSUs land in one step, which the filter would re-run for each (1218 applications for 1507 on
-        `toptag bench bus`'s drive, the same estimates)."""
-        young = now - self.fix_hold_ns
-        due = [f for f in self._held if not young < f.t_ns <= now]
-        if not due:
-            return
-        self._held = [f for f in self._held if young < f.t_ns <= now]
-        due.sort(key=lambda f: f.key)
-        with self._lock:
-            for f in due:
-                self.filter.add_fix(f, decide=False)
+        """The held fixes due at now to the filter (toptag.fusion.fix_hold), decided together when the filter is
+        next asked (the step's estimate): an instant's fixes from several RSUs land in one step, which the filter
+        would re-run for each (1218 applications for 1507 on `toptag bench bus`'s drive, the same estimates)."""
+        due = self.fix_hold.due(now)
+        if due:
+            with self._lock:
+                for f in due:
+                    self.filter.add_fix(f, decide=False)
 
     # ---- position and sessions ------------------------------------------------------------------
     def position(self, now_ns: int) -> CoarsePosition | None:
@@ -324,8 +310,9 @@ class BusAgent:
 
     def close(self) -> None:
         self._leave("agent stopped")
-        log.info("bus %s: %d fixes received, capture-to-arrival latency %s, filter %s", self.bus_id,
-                 self.fixes_received, {k: round(v, 1) for k, v in self.latency_ms().items()}, self.filter.counters())
+        log.info("bus %s: %d fixes received, capture-to-arrival latency %s, held %.0f ms at the end, filter %s",
+                 self.bus_id, self.fixes_received, {k: round(v, 1) for k, v in self.latency_ms().items()},
+                 ms_from_ns(self.fix_hold.hold_ns), self.filter.counters())
         for s in self._subs:
             s.close()
         self._fused_pub.close()
@@ -334,7 +321,8 @@ class BusAgent:
         self.clock.close()
 
     def latency_ms(self) -> dict:
-        lat = ms_from_ns(np.asarray(self.fix_latency_ns, dtype=float))
+        """Capture to arrival of the latest fixes (fix_hold's window: a running agent keeps no more)."""
+        lat = ms_from_ns(np.asarray(self.fix_hold.delays_ns, dtype=float))
         if lat.size == 0:
             return {}
         return {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99))}
@@ -399,8 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map", required=True, help="map file of intersections")
     p.add_argument("--fused-hz", type=float, default=50.0)
     p.add_argument("--fix-hold-ms", type=float, default=FIX_HOLD_MS,
-                   help=f"hold each PoseFix until it is this old (capture time) before the filter takes it: fewer "
-                        f"re-applications for a little freshness (default {FIX_HOLD_MS:g}; 0: none)")
+                   help=f"the longest a PoseFix waits before the filter takes it; the wait follows the fixes' "
+                        f"recent delays up to this: fewer re-applications for a little freshness (default "
+                        f"{FIX_HOLD_MS:g}; 0: none)")
     add_service_arguments(p)
     return p
 
