@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from toptag.camera import Camera
-from toptag.geometry import vehicle_to_world
+from toptag.geometry import rot_z, vehicle_to_world
 from toptag.vehicle import Vehicle
 
 
@@ -131,11 +131,8 @@ def _tag_sizes_by_row(camera: Camera, roof_z: float, tag_size: float):
     seen = np.flatnonzero(np.all(np.isfinite(ground), axis=1))
     if seen.size:
         yaws = np.array([0.0, np.pi / 8, np.pi / 4, 3 * np.pi / 8, np.pi / 2])
-        c, s = np.cos(yaws), np.sin(yaws)
-        turns = np.zeros((yaws.size, 3, 3))
-        turns[:, 0, 0], turns[:, 0, 1], turns[:, 1, 0], turns[:, 1, 1], turns[:, 2, 2] = c, s, -s, c, 1.0
         # every seen row's square at every yaw in one projection (a row and yaw at a time cost ~80 ms)
-        corners = (square @ turns)[None, :, :, :] + ground[seen][:, None, None, :]  # (rows, yaws, 4, 3)
+        corners = (square @ rot_z(yaws).swapaxes(-1, -2))[None] + ground[seen][:, None, None, :]  # (rows, yaws, 4, 3)
         uv = camera.project(corners.reshape(-1, 3), distort=False).reshape(seen.size, yaws.size, 4, 2)
         sides = np.linalg.norm(np.roll(uv, -1, axis=2) - uv, axis=3).min(axis=2)  # (rows, yaws)
         side[seen] = sides.min(axis=1)
