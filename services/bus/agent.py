@@ -12,8 +12,9 @@ Approach carries its host's clock (toptag.hostclock).
 One thread does the work: its IMU samples, GNSS fixes and PoseFixes wait in Zenoh's channels (filled
 without Python) and each 50 Hz step takes them in (IMU, then GNSS in arrival order, then fixes) before it
 estimates. A fix reaches the filter once it is about as old as the recent fixes were when they arrived (a high
-quantile of their delays, at most --fix-hold-ms: toptag.fusion.fix_hold), the fixes of a step in capture order. A fix's arrival, for the filter's health and the latency log, is when the step
-took it in (up to one output period after it reached the process), not when it was released. The step's
+quantile of their delays, at most --fix-hold-ms: toptag.fusion.fix_hold), the fixes of a step in capture
+order. A fix's arrival, for the filter's health and the latency log, is when the step took it in (up to one
+output period after it reached the process), not when it was released. The step's
 output holds the same inputs as when a callback thread fed each message to the filter on arrival; it costs
 one wake-up per step instead of one per message (with a thread hop and a GIL hand-off each: most of the
 agent's CPU at 100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md). Its Zenoh runs on one thread
