@@ -665,3 +665,24 @@ def test_bench_rsu_takes_jpeg_frames_of_a_real_lens_and_times_their_decode_apart
     assert r["tracked_with_decode_ms_p50"] > r["tracked_ms_p50"] > 0
     assert r["acquire_with_decode_ms_p50"] > r["acquire_ms_p50"] > 0
     assert "JPEG" in r["frame"] and "-0.12" in r["frame"]
+
+
+def test_a_buses_view_grid_is_built_with_its_code_bag_once_per_kind(bus_pass):
+    """Where acquisition can find a bus (its kind's view grid, ~25 ms of CPU at 960x720) is built when its code
+    bag is added, not on its session's first frame, whose search gives the bus's first fix: the pass and its
+    searches, and a bus of the same kind after it, build no other; a pipeline that searches whole frames none."""
+    camera, bus, frames = bus_pass
+    p = RsuPipeline(camera, PipelineSettings())
+    p.add_vehicle(bus)
+    grids = dict(p._grids)
+    assert len(grids) == 1
+    acquired = [p.process(img, t_ns, seq).acquired for seq, (t_ns, img, _, _) in enumerate(frames)]
+    assert sum(acquired) >= 2  # searches (the first and after losing the bus) used the whereabouts
+    assert p._grids == grids and all(p._grids[k] is g for k, g in grids.items())
+    twin = Vehicle.from_dict({**json.loads(json.dumps(bus.to_dict())), "id": "bus-twin"}, source="test")
+    p.remove_vehicle(bus.id)
+    p.add_vehicle(twin)
+    assert p._grids == grids
+    whole = RsuPipeline(camera, PipelineSettings(tracking=False, acquire_mode="full"))
+    whole.add_vehicle(bus)
+    assert whole._grids == {}
