@@ -679,7 +679,7 @@ def test_a_buses_view_grid_is_built_with_its_code_bag_once_per_kind(bus_pass):
     acquired = [p.process(img, t_ns, seq).acquired for seq, (t_ns, img, _, _) in enumerate(frames)]
     assert sum(acquired) >= 2  # searches (the first and after losing the bus) used the whereabouts
     assert p._grids == grids and all(p._grids[k] is g for k, g in grids.items())
-    twin = Vehicle.from_dict({**json.loads(json.dumps(bus.to_dict())), "id": "bus-twin"}, source="test")
+    twin = Vehicle.from_dict({**bus.to_dict(), "id": "bus-twin"}, source="test")
     p.remove_vehicle(bus.id)
     p.add_vehicle(twin)
     assert p._grids == grids
