@@ -558,6 +558,18 @@ def test_zenoh_config_builds_explicit_endpoints():
         zenoh_config(mode="satellite")
 
 
+def test_fixes_get_a_deeper_send_queue_unless_a_config_file_sets_it(tmp_path):
+    """PoseFix's priority queue holds FIX_QUEUE_BATCHES (Zenoh's default, 2, dropped fixes sent in bursts by a
+    starved RSU); a config file's own value is kept, and extra (code) overrides both."""
+    from protocol.transport.config import FIX_QUEUE_BATCHES, FIX_QUEUE_PATH
+    assert _get(zenoh.Config(), FIX_QUEUE_PATH) == 2 < FIX_QUEUE_BATCHES  # Zenoh's default, as measured against
+    assert _get(zenoh_config(), FIX_QUEUE_PATH) == FIX_QUEUE_BATCHES
+    f = tmp_path / "z.json5"
+    f.write_text("{ transport: { link: { tx: { queue: { size: { interactive_high: 4 } } } } } }")
+    assert _get(zenoh_config(config_file=f), FIX_QUEUE_PATH) == 4
+    assert _get(zenoh_config(config_file=f, extra={FIX_QUEUE_PATH: 16}), FIX_QUEUE_PATH) == 16
+
+
 def test_config_precedence_cli_over_env_over_file_over_defaults(tmp_path):
     f = tmp_path / "z.json5"
     f.write_text('{ // json5\n connect: { endpoints: ["tcp/10.0.0.1:7447"] }, mode: "client" }')

@@ -38,6 +38,13 @@ ENV_RUNTIME = "ZENOH_RUNTIME"
 # of `toptag bench demo` the simulator sent frames up to 2.5 s late and the RSUs skipped 11-13 % of their
 # frames for being busy (0.0-0.2 % with it in the bus agents only, as without it).
 ONE_ZENOH_THREAD = "(rx: (handover: app), tx: (handover: app), net: (handover: app), acc: (handover: app))"
+# PoseFix goes at INTERACTIVE_HIGH, express, with CongestionControl.DROP (publishing.QOS), each fix a batch of its
+# own, and an RSU sends its buses' fixes of a frame back to back. Zenoh keeps 2 batches per priority and drops a
+# message that waited 1 ms for room: a sender starved of CPU (6 busy loops in its group on the 2 cores) lost
+# 20, 22 and 34 of ~786 fixes sent in bursts of 4; with 8 batches none of 2364 (docs/real-time.md). A config
+# file that sets this queue to another size keeps it.
+FIX_QUEUE_PATH = "transport/link/tx/queue/size/interactive_high"
+FIX_QUEUE_BATCHES = 8
 
 
 class ZenohSetupError(SetupError):
@@ -79,7 +86,7 @@ def zenoh_config(mode: str | None = "peer", connect: Sequence[str] | None = None
     """A zenoh.Config: start from ``config_file`` (JSON5) if given, then set every argument that is not
     None (``extra`` maps config paths such as "transport/link/tx/lease" to JSON-able values).
 
-    Defaults suit toptag: peer mode, multicast scouting off (explicit endpoints only)."""
+    Defaults suit toptag: peer mode, multicast scouting off (explicit endpoints only), FIX_QUEUE_BATCHES."""
     if config_file is not None:
         try:
             conf = zenoh.Config.from_file(str(config_file))
@@ -104,6 +111,8 @@ def zenoh_config(mode: str | None = "peer", connect: Sequence[str] | None = None
         put("listen/endpoints", _check_endpoints("listen", listen))
     if multicast_scouting is not None:
         put("scouting/multicast/enabled", bool(multicast_scouting))
+    if conf.get_json(FIX_QUEUE_PATH) == zenoh.Config().get_json(FIX_QUEUE_PATH):  # Zenoh's default: not the file's
+        put(FIX_QUEUE_PATH, FIX_QUEUE_BATCHES)
     for path, value in (extra or {}).items():
         put(path, value)
     return conf
