@@ -123,6 +123,8 @@ def test_router_is_the_official_image_with_the_config_from_docker_dir(compose):
     assert json.loads(conf.get_json("mode")) == "router"
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    from protocol.transport.config import FIX_QUEUE_BATCHES, FIX_QUEUE_PATH
+    assert json.loads(conf.get_json(FIX_QUEUE_PATH)) == FIX_QUEUE_BATCHES  # zenohd keeps fixes as toptag's processes do
     spec = topology.load_compose()["services"]["router"]
     # published on this host's loopback only unless TOPTAG_ROUTER_PUBLISH says otherwise
     assert spec["ports"] == ["${TOPTAG_ROUTER_PUBLISH:-127.0.0.1:7447}:7447"]

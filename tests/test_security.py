@@ -209,6 +209,9 @@ def test_certs_command_issues_ca_identities_and_fragments(pki):
         conf = zenoh.Config.from_file(str(frag))  # zenoh accepts the fragment as it is
         assert json.loads(conf.get_json("mode")) == ("router" if ident["role"] == "router" else "client")
         assert json.loads(conf.get_json("transport/link/protocols")) == ["tls"]
+        if ident["role"] == "router":  # zenohd keeps fixes as toptag's processes do (protocol.transport.config)
+            from protocol.transport.config import FIX_QUEUE_BATCHES, FIX_QUEUE_PATH
+            assert json.loads(conf.get_json(FIX_QUEUE_PATH)) == FIX_QUEUE_BATCHES
     assert stat.S_IMODE((d / "ca.key").stat().st_mode) == 0o600
     router_text = _openssl("x509", "-in", str(d / "router.router.pem"), "-noout", "-ext",
                            "subjectAltName,extendedKeyUsage")

@@ -9,6 +9,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from protocol.transport.config import FIX_QUEUE_BATCHES
 from services.security.acl import access_control_config
 from services.security.identities import SecurityError
 from services.security.manifest import CertSet, load_certs
@@ -79,7 +80,8 @@ def router_config(certs: CertSet | str | os.PathLike, *, listen: Sequence[str] |
         "mode": "router",
         "listen": {"endpoints": listen},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"link": {"protocols": ["tls"], "tls": tls}},
+        "transport": {"link": {"protocols": ["tls"], "tls": tls,
+                               "tx": {"queue": {"size": {"interactive_high": FIX_QUEUE_BATCHES}}}}},
         "access_control": access_control_config(cs.identities),
     }
 
