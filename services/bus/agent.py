@@ -10,11 +10,16 @@ its drift flag and disagreement) on keys.rsu_diagnosis, which the RSUs and the m
 Approach carries its host's clock (toptag.hostclock).
 
 One thread does the work: its IMU samples, GNSS fixes and PoseFixes wait in Zenoh's channels (filled
-without Python) and each 50 Hz step takes them in (IMU, then GNSS in arrival order, then fixes) before it
-estimates. A fix reaches the filter once it is about as old as the recent fixes were when they arrived (a high
-quantile of their delays, at most --fix-hold-ms: toptag.fusion.fix_hold), the fixes of a step in capture
-order. A fix's arrival, for the filter's health and the latency log, is when the step took it in (up to one
-output period after it reached the process), not when it was released. The step's
+without Python) and each filter cycle takes them in (IMU, then GNSS in arrival order, then fixes) before it
+estimates. A cycle is every --filter-every-th output step (default 2: 25 Hz at the 50 Hz output); it publishes
+its estimate of now and predicts the outputs of the steps before the next cycle, which publish those
+predictions at their instants (a step that wakes late runs a cycle instead). On this VM each wake-up runs its
+Python several times slower than back to back (cold caches), so the cost is per kind of work done per wake-up
+more than per message: the agent at 0.8x the CPU with cycles at 25 Hz, for fixes taken in up to one output
+period later (`toptag bench bus`, docs/real-time.md). A fix reaches the filter once it is about as old as the recent fixes were
+when they arrived (a high quantile of their delays, at most --fix-hold-ms: toptag.fusion.fix_hold), the fixes
+of a cycle in capture order. A fix's arrival, for the filter's health and the latency log, is when the cycle
+took it in (up to one cycle after it reached the process), not when it was released. The cycle's
 output holds the same inputs as when a callback thread fed each message to the filter on arrival; it costs
 one wake-up per step instead of one per message (with a thread hop and a GIL hand-off each: most of the
 agent's CPU at 100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md). Its Zenoh runs on one thread
@@ -24,6 +29,7 @@ passes between Zenoh's rx, tx and net threads (context switches 0.4x, docs/real-
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import logging
 import math
@@ -61,7 +67,7 @@ from toptag.fusion.fix_hold import FixHold
 from toptag.fusion.presence import IntersectionPresence
 from toptag.hostclock import HostClockProbe
 from toptag.site import IntersectionSpec, MapFile
-from toptag.units import ms_from_ns, ns_from_ms, s_from_ns
+from toptag.units import ms_from_ns, ns_from_ms, ns_from_s, s_from_ns
 from toptag.vehicle import Vehicle
 
 log = logging.getLogger(__name__)
@@ -90,6 +96,8 @@ STOP_POLL_S = 0.1  # the step loop sleeps at most this long at a time, so that s
 # The longest a fix waits in the agent before the filter takes it; the hold follows the delays seen, up to this
 # (toptag.fusion.fix_hold: fewer re-applications of fixes for a little freshness). 0: no hold.
 FIX_HOLD_MS = 150.0
+# A filter cycle at every FILTER_EVERY-th output step; the steps between publish the cycle's predictions.
+FILTER_EVERY = 2
 
 
 class BusSettings(ServiceSettings):
@@ -100,11 +108,18 @@ class BusSettings(ServiceSettings):
 
 class BusAgent:
     def __init__(self, session, vehicle: Vehicle, map_file: MapFile, fused_hz: float = 50.0,
-                 filter_config: FilterConfig | None = None, fix_hold_ms: float = FIX_HOLD_MS):
+                 filter_config: FilterConfig | None = None, fix_hold_ms: float = FIX_HOLD_MS,
+                 filter_every: int = FILTER_EVERY):
         self.session = session
         self.vehicle = vehicle
         self.bus_id = vehicle.id
         self.fused_period = 1.0 / fused_hz
+        self._period_ns = ns_from_s(self.fused_period)
+        self.filter_every = filter_every
+        # The outputs a cycle predicted for the steps before the next one: (instant, FusedPose payload), oldest
+        # first. A step publishes the first when it wakes within half a period of its instant.
+        self._predicted: collections.deque[tuple[int, bytes]] = collections.deque()
+        self.cycles = 0
         self.fix_hold = FixHold(ns_from_ms(fix_hold_ms))  # the fixes taken in, until the filter takes them
         self.filter_config = filter_config or FilterConfig()
         self.presence = IntersectionPresence(map_file)
@@ -242,9 +257,22 @@ class BusAgent:
         log.info("left intersection %s (%s)", a.intersection_id, reason)
 
     def step(self, now_ns: int) -> None:
-        """Presence, repeated announcements and the fused output, once per output period. One filter
-        estimate at now_ns serves all three (position, whereabouts and the fused pose are of the same
-        instant; it was estimated up to three times per step)."""
+        """The output of one period: the prediction a filter cycle made for now_ns if there is one (within half
+        a period), else a filter cycle (self.cycle)."""
+        predicted = self._predicted
+        if predicted:
+            t_ns, payload = predicted.popleft()
+            if abs(now_ns - t_ns) * 2 <= self._period_ns:
+                self._fused_pub.put_encoded(payload)
+                return
+            predicted.clear()  # late (a starved machine) or the clock stepped: the filter estimates now instead
+        self.cycle(now_ns)
+
+    def cycle(self, now_ns: int) -> None:
+        """The inputs taken in, presence, repeated announcements and the fused output, and the predicted
+        outputs of the filter_every - 1 steps after it. One filter estimate at now_ns serves the first three
+        (position, whereabouts and the fused pose are of the same instant)."""
+        self.cycles += 1
         self.take_inputs()
         with self._lock:
             est = self.filter.estimate(now_ns) if self.filter.initialized else None
@@ -260,13 +288,22 @@ class BusAgent:
         if self._approach is not None and time.monotonic() - self._last_announce >= ANNOUNCE_PERIOD_S:
             self._position = announced_position(est, gnss, speed, now_ns)
             self._announce()
-        if est is not None:  # the health counts every fix since the agent started, across filters
-            if past_paths:
-                est = dataclasses.replace(est, health=est.health.plus_paths(past_paths))
-            self._fused_pub.put_encoded(fused_pose_payload(est, self.bus_id))
+        if est is not None:
+            self._fused_pub.put_encoded(self._fused_payload(est, past_paths))
+            for k in range(1, self.filter_every):
+                t_ns = now_ns + k * self._period_ns
+                with self._lock:
+                    ahead = self.filter.estimate(t_ns)
+                self._predicted.append((t_ns, self._fused_payload(ahead, past_paths)))
         if time.monotonic() - self._last_diagnosis >= DIAGNOSIS_PERIOD_S:
             self._last_diagnosis = time.monotonic()
             self.publish_diagnoses(now_ns)
+
+    def _fused_payload(self, est, past_paths: dict[str, int]) -> bytes:
+        """The FusedPose of an estimate; its health counts every fix since the agent started, across filters."""
+        if past_paths:
+            est = dataclasses.replace(est, health=est.health.plus_paths(past_paths))
+        return fused_pose_payload(est, self.bus_id)
 
     def publish_diagnoses(self, now_ns: int) -> list[RsuDiagnosis]:
         """The bus's RsuDiagnosis of every RSU heard from in the last DIAGNOSIS_KEEP_S, published."""
@@ -387,6 +424,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vehicle", required=True, help="this bus's vehicle file (its code bag)")
     p.add_argument("--map", required=True, help="map file of intersections")
     p.add_argument("--fused-hz", type=float, default=50.0)
+    p.add_argument("--filter-every", type=int, default=FILTER_EVERY, metavar="N",
+                   help=f"a filter cycle (inputs taken in, fixes decided) at every N-th output; the outputs between "
+                        f"are the cycle's predictions for their instants (default {FILTER_EVERY}; 1: a cycle at "
+                        f"every output)")
     p.add_argument("--fix-hold-ms", type=float, default=FIX_HOLD_MS,
                    help=f"the longest a PoseFix waits before the filter takes it; the wait follows the fixes' "
                         f"recent delays up to this: fewer re-applications for a little freshness (default "
@@ -401,6 +442,8 @@ def main(argv: list[str]) -> int:
     def load() -> tuple[Vehicle, MapFile]:
         if not (args.fix_hold_ms >= 0 and math.isfinite(args.fix_hold_ms)):
             raise InputError(f"--fix-hold-ms must be a finite number >= 0, got {args.fix_hold_ms}")
+        if args.filter_every < 1:
+            raise InputError(f"--filter-every must be a whole number >= 1, got {args.filter_every}")
         vehicle = Vehicle.load(args.vehicle)
         keys.imu(vehicle.id)  # the vehicle id must be usable as a bus id on the wire
         return vehicle, MapFile.load(args.map)
@@ -408,6 +451,7 @@ def main(argv: list[str]) -> int:
     return run_service("bus", args, load,
                        lambda session, inputs: BusAgent(session, *inputs, fused_hz=args.fused_hz,
                                                         filter_config=args.settings.filter,
-                                                        fix_hold_ms=args.fix_hold_ms),
+                                                        fix_hold_ms=args.fix_hold_ms,
+                                                        filter_every=args.filter_every),
                        lambda inputs: f"bus {inputs[0].id} ({len(inputs[1].intersections)} intersections known)",
                        settings=BusSettings, zenoh_runtime=ONE_ZENOH_THREAD)
