@@ -16,14 +16,14 @@ its estimate of now and predicts the outputs of the steps before the next cycle,
 predictions at their instants (a step that wakes late runs a cycle instead). On this VM each wake-up runs its
 Python several times slower than back to back (cold caches), so the cost is per kind of work done per wake-up
 more than per message: the agent at 0.8x the CPU with cycles at 25 Hz, for fixes taken in up to one output
-period later (`toptag bench bus`, docs/real-time.md). A fix reaches the filter once it is about as old as the recent fixes were
-when they arrived (a high quantile of their delays, at most --fix-hold-ms: toptag.fusion.fix_hold), the fixes
-of a cycle in capture order. A fix's arrival, for the filter's health and the latency log, is when the cycle
-took it in (up to one cycle after it reached the process), not when it was released. The cycle's
-output holds the same inputs as when a callback thread fed each message to the filter on arrival; it costs
-one wake-up per step instead of one per message (with a thread hop and a GIL hand-off each: most of the
-agent's CPU at 100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md). Its Zenoh runs on one thread
-(protocol.transport.ONE_ZENOH_THREAD): no Python waits in Zenoh's threads here, and each message no longer
+period later (`toptag bench bus`, docs/real-time.md). A fix reaches the filter once it is about as old as the
+recent fixes were when they arrived (a high quantile of their delays, at most --fix-hold-ms:
+toptag.fusion.fix_hold), the fixes of a cycle in capture order. A fix's arrival, for the filter's health and
+the latency log, is when the cycle took it in (up to one cycle after it reached the process), not when it was
+released. The cycle's output holds the same inputs as when a callback thread fed each message to the filter on
+arrival; it costs one wake-up per cycle instead of one per message (with a thread hop and a GIL hand-off each:
+most of the agent's CPU at 100 Hz IMU and 40 fixes/s, `toptag bench bus`, docs/architecture.md). Its Zenoh runs
+on one thread (protocol.transport.ONE_ZENOH_THREAD): no Python waits in Zenoh's threads here, and each message no longer
 passes between Zenoh's rx, tx and net threads (context switches 0.4x, docs/real-time.md).
 """
 from __future__ import annotations
