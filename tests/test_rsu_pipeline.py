@@ -514,6 +514,37 @@ def test_prepared_detectors_serve_a_whole_pass_and_its_searches(bus_pass):
     assert len(TagDetector._alive) == before + built
 
 
+def test_a_search_not_threaded_runs_on_the_search_thread_alone_with_the_same_fix(bus_pass):
+    """search_threaded=False: the search thread builds and uses only its plain detector (no detector
+    threads, no detector built during the pass), and the bus is acquired at the same pose as by a search
+    on the detector's threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from toptag.detection import TagDetector
+
+    camera, bus, frames = bus_pass
+    fixes = {}
+    for threaded in (True, False):
+        p = RsuPipeline(camera, PipelineSettings(workers=2, search_threaded=threaded))
+        search = ThreadPoolExecutor(max_workers=1)
+        before = len(TagDetector._alive)
+        search.submit(p.prepare([bus.family])).result()
+        built = len(TagDetector._alive) - before
+        assert built == (6 if threaded else 5)  # the search thread's threaded detector only if threaded
+        p.add_vehicle(bus)
+        for seq, (t_ns, img, _, _) in enumerate(frames):
+            if p.process(img, t_ns, seq, defer_search=True).search_deferred:
+                assert p._search.cost_px >= 100_000  # costly enough for the detector's threads
+                search.submit(p.search_work()).result()
+                vr = p.continue_search().vehicles[bus.id]
+                if vr.fix is not None:
+                    fixes[threaded] = (vr.fix.t_ns, vr.fix.x, vr.fix.y, vr.fix.yaw)
+                    break
+        search.shutdown()
+        assert len(TagDetector._alive) == before + built  # nothing built by the search: it used its own
+    assert fixes[False] == pytest.approx(fixes[True], abs=1e-9)
+
+
 def test_plane_scale_is_the_shortest_and_longest_image_of_a_metre_on_the_roof():
     """plane_scale_px against brute force: a 0.5 m segment of the roof plane turned through 180 degrees,
     its image's length per metre, shortest and longest; a tag's minor extent is its side times the

@@ -6,6 +6,7 @@ Full-frame AprilTag detection costs ~0.1 s at 960×720 and >1 s at 3200×2400; t
 they are small), confirmed at full resolution, then (2) tracks it, cropping each tag's predicted region."""
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -130,6 +131,13 @@ class PipelineSettings(BaseModel):
     acquire_min_tag_px: float = Field(default=6.0, ge=0.0)
     crop_pad_px: float = 6.0
     workers: int = Field(default=2, ge=1)
+    # The RSU service's acquisition search (on its own thread, niced) runs its costly jobs on the detector's
+    # own threads (as many as workers): on a host of its own, an RSU finds a bus sooner. Where several RSUs
+    # share a host's cores and search the same frame at once (a bus's Approach reaches them together), those
+    # threads cost CPU and gain no time: the demo's four RSUs on two cores, three runs each alternately,
+    # searches single-threaded took 0.85x the CPU and gave the bus's first fixes p50 98-108 ms against
+    # 113-156 (docs/real-time.md). False: every search job on the search thread alone.
+    search_threaded: bool = True
 
     @field_validator("method")
     @classmethod
@@ -230,10 +238,11 @@ class _DetectorPool:
             cache[threaded] = TagDetector(self.families, self.settings.model_copy(update={"nthreads": nthreads}))
         return cache[threaded]
 
-    def prepare_here(self) -> None:
-        """Build the calling thread's detectors now (run_here uses them)."""
+    def prepare_here(self, threaded: bool = True) -> None:
+        """Build the calling thread's detectors now (run_here uses them; threaded: also the one on the
+        detector's own threads)."""
         self._detector(False)
-        if self.workers > 1:
+        if threaded and self.workers > 1:
             self._detector(True)
 
     def prepare_workers(self) -> None:
@@ -258,10 +267,10 @@ class _DetectorPool:
             gray[b.y0:b.y1, b.x0:b.x1], (b.x0, b.y0), job.upsample, None if job.thorough else False, job.expect,
             job.min_contrast, job.decimate)
 
-    def run_here(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[list[RawDetection]]:
+    def run_here(self, gray: np.ndarray, jobs: list[DetectJob], threaded: bool = True) -> list[list[RawDetection]]:
         """Detections per job, in job order, each on the calling thread (a costly one on the detector's own
-        threads, which the calling thread starts)."""
-        return [self._one(gray, j, self.workers > 1 and j.cost >= _THREADED_JOB_COST) for j in jobs]
+        threads, which the calling thread starts, unless not threaded)."""
+        return [self._one(gray, j, threaded and self.workers > 1 and j.cost >= _THREADED_JOB_COST) for j in jobs]
 
     def run(self, gray: np.ndarray, jobs: list[DetectJob]) -> list[list[RawDetection]]:
         """Detections per job, in job order (on the workers when there are several)."""
@@ -397,7 +406,7 @@ class RsuPipeline:
         pool = self._pool(tuple(sorted(set(families))))
         pool.prepare_here()
         pool.prepare_workers()
-        return pool.prepare_here
+        return functools.partial(pool.prepare_here, self.settings.search_threaded)
 
     # ---- per frame ----------------------------------------------------------------------------
     def process(self, gray: np.ndarray | Callable[[], np.ndarray], t_ns: int, seq: int | None = None,
@@ -576,8 +585,9 @@ class RsuPipeline:
 
     def _run_search(self, s: _Search, alone: bool = False) -> list[RawDetection]:
         """The search's detections (coarse finds confirmed at full resolution). alone: every job on the
-        calling thread, one after the other (search_work); else on the pool's workers."""
-        run = s.pool.run_here if alone else s.pool.run
+        calling thread, one after the other (search_work; on the detector's threads only if
+        search_threaded); else on the pool's workers."""
+        run = functools.partial(s.pool.run_here, threaded=self.settings.search_threaded) if alone else s.pool.run
         t0 = time.perf_counter()
         try:
             per_job = run(s.gray, s.jobs)
