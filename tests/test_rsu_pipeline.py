@@ -717,3 +717,44 @@ def test_a_buses_view_grid_is_built_with_its_code_bag_once_per_kind(bus_pass):
     whole = RsuPipeline(camera, PipelineSettings(tracking=False, acquire_mode="full"))
     whole.add_vehicle(bus)
     assert whole._grids == {}
+
+
+def test_a_search_ends_once_each_bus_sought_has_enough_tags_and_acquires_it_as_the_whole_search(bus_pass):
+    """acquire_enough_tags: the deferred search stops after the job (largest first) that brought the bus's
+    tags, and acquires the bus at the same pose as the search that runs every job; run inline (on the pool's
+    workers), the search uses the same jobs' detections."""
+    from toptag.rsu import pipeline as P
+
+    camera, bus, frames = bus_pass
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    t1, img1, _, _ = frames[shown[10]]  # the bus well in view: both its tags in the search's largest job
+    assert len(bus.tag_ids) >= 2
+    ran: list[int] = []
+    one = P._DetectorPool._one
+
+    def counted(self, gray, job, threaded=False):
+        ran.append(job.cost)
+        return one(self, gray, job, threaded)
+
+    got = {}
+    for enough in (0, 2):
+        for deferred in (True, False):
+            p = RsuPipeline(camera, PipelineSettings(acquire_enough_tags=enough))
+            p.add_vehicle(bus)
+            assert p.process(img1, t1, defer_search=True).search_deferred
+            jobs = len(p._search.jobs)
+            ran.clear()
+            P._DetectorPool._one = counted
+            try:
+                if deferred:
+                    p.search_work()()
+                vr = p.continue_search().vehicles[bus.id]
+            finally:
+                P._DetectorPool._one = one
+            assert vr.mode == "acquired" and vr.fix is not None
+            got[enough, deferred] = (len(ran), jobs, (vr.fix.x, vr.fix.y, vr.fix.yaw), len(vr.observations))
+    assert got[0, True][0] == got[0, True][1] > 1  # every job
+    assert got[2, True][0] < got[2, True][1]  # ended early, after the job that found the bus
+    assert got[2, True][3] >= 2
+    for key in ((2, True), (2, False), (0, False)):
+        assert got[key][2] == pytest.approx(got[0, True][2], abs=1e-9)

@@ -138,6 +138,11 @@ class PipelineSettings(BaseModel):
     # searches single-threaded took 0.85x the CPU and gave the bus's first fixes p50 98-108 ms against
     # 113-156 (docs/real-time.md). False: every search job on the search thread alone.
     search_threaded: bool = True
+    # An acquisition search ends after the job (largest first) by which every bus it seeks has this many of
+    # its tags found (all of them if it has fewer): that bus's first fix needs no more, and its tracking crops
+    # find the rest on the next frame. In the demo the bus entering a view was found whole in a search's
+    # first job, 40-55 % of its cost (`toptag bench rsu --scenario`, docs/real-time.md). 0: every job runs.
+    acquire_enough_tags: int = Field(default=2, ge=0)
 
     @field_validator("method")
     @classmethod
@@ -194,6 +199,9 @@ class _Search:
     jobs: list[DetectJob]  # largest first
     pool: "_DetectorPool"
     wanted: frozenset = frozenset()  # (family, tag id) of the buses sought: the coarse finds worth confirming
+    # Per bus sought, (its tags' (family, tag id), how many found end the search): PipelineSettings.acquire_enough_tags
+    enough: tuple[tuple[frozenset, int], ...] = ()
+    ended_early: bool = False  # its last jobs were not run (enough found): it says nothing of where buses are not
     detect_s: float = 0.0
     raw: list | None = None  # all its detections, once its work has run (RsuPipeline.search_work)
     handed_out: bool = False  # its work was given to another thread (search_work)
@@ -495,9 +503,12 @@ class RsuPipeline:
             tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound]) if where else None
             jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], tiles)
             jobs = self._contrast_floor(image(), jobs, self.settings.acquire_min_contrast) if jobs else []
-            wanted = frozenset((self.vehicles[v].family, tid) for v in unfound for tid in self.vehicles[v].tag_ids)
+            tags_of = {v: frozenset((self.vehicles[v].family, tid) for tid in self.vehicles[v].tag_ids) for v in unfound}
+            wanted = frozenset().union(*tags_of.values())
+            n = self.settings.acquire_enough_tags
+            enough = tuple((tags, min(n, len(tags))) for tags in tags_of.values()) if n else ()
             search = _Search(t_ns, seq, image() if jobs else None, list(unfound), tiles,
-                             sorted(jobs, key=lambda j: -j.cost), pool, wanted)
+                             sorted(jobs, key=lambda j: -j.cost), pool, wanted, enough)
             result.pixels_searched += search.pixels
             result.search_cost_px = search.cost_px
             if defer_search and jobs:
@@ -573,7 +584,7 @@ class RsuPipeline:
             obs = observed.get(vid, [])
             vr = self._conclude(vid, obs, "acquired", s.t_ns, s.seq, 0)
             wb = self._whereabouts.get(vid)
-            if s.tiles is not None and not obs and wb is not None:
+            if s.tiles is not None and not obs and wb is not None and not s.ended_early:
                 # not there at the search's frame; since then it may have driven back into some of it
                 wb.searched(s.tiles, regrow_m=self._driven(s.t_ns, wb.t_ns if wb.t_ns is not None else s.t_ns))
             result.vehicles[vid] = vr
@@ -590,9 +601,20 @@ class RsuPipeline:
         run = functools.partial(s.pool.run_here, threaded=self.settings.search_threaded) if alone else s.pool.run
         t0 = time.perf_counter()
         try:
-            per_job = run(s.gray, s.jobs)
-            raw = [d for job, found in zip(s.jobs, per_job) if job.decimate == 1.0 for d in found]
-            coarse = [d for job, found in zip(s.jobs, per_job) if job.decimate != 1.0 for d in found
+            if alone:  # one job at a time, to end once enough is found
+                per_job = []
+                for job in s.jobs:
+                    per_job += run(s.gray, [job])
+                    if _found_enough(s, per_job):
+                        break
+            else:  # the jobs at once on the pool's workers; of them, what a search alone would have used
+                per_job = run(s.gray, s.jobs)
+                per_job = per_job[:next((k for k in range(1, len(per_job)) if _found_enough(s, per_job[:k])),
+                                        len(per_job))]
+            jobs = s.jobs[:len(per_job)]
+            s.ended_early = len(jobs) < len(s.jobs)
+            raw = [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
+            coarse = [d for job, found in zip(jobs, per_job) if job.decimate != 1.0 for d in found
                       if (d.family, d.tag_id) in s.wanted]
             if coarse:
                 raw += self._confirm_full_resolution(s.gray, coarse, run)
@@ -746,6 +768,14 @@ class RsuPipeline:
             jobs.append(DetectJob(box, 1.0, self._upsample_for(side), expect=frozenset({(d.family, d.tag_id)})))
         jobs = _merge_jobs(jobs)
         return _own_crop_first(jobs, run(gray, jobs))
+
+
+def _found_enough(s: _Search, per_job: list[list[RawDetection]]) -> bool:
+    """Has every bus the search seeks enough of its tags among these jobs' detections (_Search.enough)?"""
+    if not s.enough:
+        return False
+    found = {(d.family, d.tag_id) for ds in per_job for d in ds}
+    return all(len(found & tags) >= n for tags, n in s.enough)
 
 
 def _merge_jobs(jobs: list[DetectJob]) -> list[DetectJob]:
