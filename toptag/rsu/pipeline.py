@@ -595,9 +595,9 @@ class RsuPipeline:
         return result
 
     def _run_search(self, s: _Search, alone: bool = False) -> list[RawDetection]:
-        """The search's detections (coarse finds confirmed at full resolution). alone: every job on the
-        calling thread, one after the other (search_work; on the detector's threads only if
-        search_threaded); else on the pool's workers."""
+        """The search's detections (coarse finds confirmed at full resolution), up to the job by which it found
+        enough (_found_enough). alone: its jobs on the calling thread, one after the other, none after that one
+        (search_work; on the detector's threads only if search_threaded); else all on the pool's workers."""
         run = functools.partial(s.pool.run_here, threaded=self.settings.search_threaded) if alone else s.pool.run
         t0 = time.perf_counter()
         try:
