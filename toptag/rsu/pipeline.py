@@ -503,7 +503,8 @@ class RsuPipeline:
             tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound]) if where else None
             jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], tiles)
             jobs = self._contrast_floor(image(), jobs, self.settings.acquire_min_contrast) if jobs else []
-            tags_of = {v: frozenset((self.vehicles[v].family, tid) for tid in self.vehicles[v].tag_ids) for v in unfound}
+            tags_of = {v: frozenset((self.vehicles[v].family, tid) for tid in self.vehicles[v].tag_ids)
+                       for v in unfound}
             wanted = frozenset().union(*tags_of.values())
             n = self.settings.acquire_enough_tags
             enough = tuple((tags, min(n, len(tags))) for tags in tags_of.values()) if n else ()
@@ -601,16 +602,14 @@ class RsuPipeline:
         run = functools.partial(s.pool.run_here, threaded=self.settings.search_threaded) if alone else s.pool.run
         t0 = time.perf_counter()
         try:
-            if alone:  # one job at a time, to end once enough is found
-                per_job = []
-                for job in s.jobs:
-                    per_job += run(s.gray, [job])
-                    if _found_enough(s, per_job):
-                        break
-            else:  # the jobs at once on the pool's workers; of them, what a search alone would have used
-                per_job = run(s.gray, s.jobs)
-                per_job = per_job[:next((k for k in range(1, len(per_job)) if _found_enough(s, per_job[:k])),
-                                        len(per_job))]
+            # alone: each job run when the ones before have not found enough; else all at once on the pool's
+            # workers, of which the same jobs' detections are used
+            results = (found for job in s.jobs for found in run(s.gray, [job])) if alone else iter(run(s.gray, s.jobs))
+            per_job = []
+            for found in results:
+                per_job.append(found)
+                if _found_enough(s, per_job):
+                    break
             jobs = s.jobs[:len(per_job)]
             s.ended_early = len(jobs) < len(s.jobs)
             raw = [d for job, found in zip(jobs, per_job) if job.decimate == 1.0 for d in found]
