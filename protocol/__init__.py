@@ -19,6 +19,7 @@ from protocol.messages import (
     GnssFix,
     GroundTruth,
     Imu,
+    ImuBatch,
     Leave,
     Message,
     PoseFix,
@@ -30,6 +31,6 @@ from protocol.messages import (
 
 __all__ = [
     "MESSAGE_TYPES", "PROTOCOL_VERSION", "ActiveSessions", "Approach", "ClockInfo", "CoarsePosition", "Frame", "FusedPose",
-    "FusionHealth", "GnssFix", "GroundTruth", "Imu", "Leave", "Message", "PoseFix", "ProtocolError", "RsuDiagnosis",
-    "RsuStatus", "TagDetections", "check_id", "codec", "decode", "decode_any", "encode", "keys",
+    "FusionHealth", "GnssFix", "GroundTruth", "Imu", "ImuBatch", "Leave", "Message", "PoseFix", "ProtocolError",
+    "RsuDiagnosis", "RsuStatus", "TagDetections", "check_id", "codec", "decode", "decode_any", "encode", "keys",
 ]

@@ -24,6 +24,19 @@
   model without pydantic's validation: a JSON decode of an Imu cost ~60 us of CPU on the agent's
   every-20-ms wake-up, cold (docs/architecture.md). Imu in JSON, as sent before this layout, still
   decodes (recordings made before it replay).
+- ImuBatch (several Imu samples of one bus; what the simulator sends): a header, the bus_id, then N
+  records of an Imu's fields (big endian):
+
+      offset 0   4 bytes  magic b"TTIB"
+      offset 4   uint8    protocol version
+      offset 5   uint8    flags: bit 1 seq present (absent: 0 in its slot)
+      offset 6   uint64   seq
+      offset 14  uint16   sample count N (1 to IMU_BATCH_MAX)
+      offset 16  uint16   bus_id length L
+      offset 18  L bytes  bus_id, UTF-8
+      then N x 73 bytes   uint8 flags, uint64 t_ns, 7 x float64, uint64 seq: as in Imu's layout
+
+  checked as an Imu's, and the samples' times strictly increasing, as pydantic would.
 - Every other message: compact UTF-8 JSON from pydantic (``model_dump_json``).
 
 ``decode`` raises ProtocolError, whose str() is one line naming the problem (wrong version, malformed
@@ -39,7 +52,7 @@ from typing import TypeVar
 from pydantic import ValidationError
 
 from protocol import keys as _keys
-from protocol.messages import MESSAGE_TYPES, PROTOCOL_VERSION, Frame, Imu, Message, check_id
+from protocol.messages import IMU_BATCH_MAX, MESSAGE_TYPES, PROTOCOL_VERSION, Frame, Imu, ImuBatch, Message, check_id
 from toptag.errors import ProtocolError
 from toptag.inputs import describe_validation_error
 
@@ -53,8 +66,14 @@ IMU_FIXED_SIZE = _IMU.size  # 80, then the bus_id
 _IMU_WHEEL, _IMU_SEQ = 1, 2
 _IMU_FLOATS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "wheel_speed")
 _IMU_FIELDS = tuple(Imu.model_fields)
+IMU_BATCH_MAGIC = b"TTIB"
+_IMU_BATCH = struct.Struct(">4sBBQHH")
+IMU_BATCH_FIXED_SIZE = _IMU_BATCH.size  # 18, then the bus_id, then the samples
+_IMU_RECORD = struct.Struct(">BQ7dQ")  # one sample of a batch: Imu's fields from its flags to its seq
+_IMU_BATCH_SEQ = 2
+_IMU_BATCH_FIELDS = tuple(ImuBatch.model_fields)
 # Messages with a binary layout, by magic (the first 4 bytes; JSON starts with '{').
-BINARY: dict[bytes, type[Message]] = {FRAME_MAGIC: Frame, IMU_MAGIC: Imu}
+BINARY: dict[bytes, type[Message]] = {FRAME_MAGIC: Frame, IMU_MAGIC: Imu, IMU_BATCH_MAGIC: ImuBatch}
 WIRE = {"wire": True}  # validation context: version and type must be on the wire
 
 M = TypeVar("M", bound=Message)
@@ -92,26 +111,45 @@ def encode(msg: Message) -> bytes:
         return b"".join((_FRAME_PREFIX.pack(FRAME_MAGIC, len(header), len(msg.image)), header, msg.image))
     if isinstance(msg, Imu):
         return _encode_imu(msg)
+    if isinstance(msg, ImuBatch):
+        return _encode_imu_batch(msg)
     return msg.model_dump_json().encode()
 
 
 def encode_as(msg: Message, like) -> bytes:
     """``msg`` encoded in the form ``like`` (a payload of the same type) has: JSON for an Imu recorded before
-    its binary layout, so that a shifted replay sends what its recording's encoding says."""
+    its binary layout, so that a shifted replay sends what its recording's encoding says (an ImuBatch was
+    binary from the start)."""
     if isinstance(msg, Imu) and bytes(_as_bytes(like)[:4]) != IMU_MAGIC:
         return msg.model_dump_json().encode()
     return encode(msg)
 
 
+def _imu_values(m: Imu) -> tuple:
+    """An Imu's fields in its layout's order, from its flags to its seq."""
+    flags = (_IMU_WHEEL if m.wheel_speed is not None else 0) | (_IMU_SEQ if m.seq is not None else 0)
+    return (flags, m.t_ns, m.gyro_x, m.gyro_y, m.gyro_z, m.accel_x, m.accel_y, m.accel_z, m.wheel_speed or 0.0,
+            m.seq or 0)
+
+
 def _encode_imu(m: Imu) -> bytes:
     bus_id = m.bus_id.encode()
-    flags = (_IMU_WHEEL if m.wheel_speed is not None else 0) | (_IMU_SEQ if m.seq is not None else 0)
     try:
-        head = _IMU.pack(IMU_MAGIC, PROTOCOL_VERSION, flags, m.t_ns, m.gyro_x, m.gyro_y, m.gyro_z, m.accel_x,
-                         m.accel_y, m.accel_z, m.wheel_speed or 0.0, m.seq or 0, len(bus_id))
+        head = _IMU.pack(IMU_MAGIC, PROTOCOL_VERSION, *_imu_values(m), len(bus_id))
     except struct.error as e:  # t_ns or seq beyond 64 bits
         raise ValueError(f"Imu: does not fit its binary layout: {e}") from None
     return head + bus_id
+
+
+def _encode_imu_batch(m: ImuBatch) -> bytes:
+    bus_id = m.bus_id.encode()
+    try:
+        parts = [_IMU_BATCH.pack(IMU_BATCH_MAGIC, PROTOCOL_VERSION, _IMU_BATCH_SEQ if m.seq is not None else 0,
+                                 m.seq or 0, len(m.samples), len(bus_id)), bus_id]
+        parts += [_IMU_RECORD.pack(*_imu_values(s)) for s in m.samples]
+    except struct.error as e:  # t_ns or seq beyond 64 bits
+        raise ValueError(f"ImuBatch: does not fit its binary layout: {e}") from None
+    return b"".join(parts)
 
 
 # ---- decode -----------------------------------------------------------------------------------
@@ -125,6 +163,8 @@ def decode(payload, expected_type: type[M], *, key: str | None = None) -> M:
         msg = _decode_frame(data)
     elif expected_type is Imu and data[:4] == IMU_MAGIC:
         msg = _decode_imu(data)
+    elif expected_type is ImuBatch and data[:4] == IMU_BATCH_MAGIC:
+        msg = _decode_imu_batch(data)
     else:
         if len(data) == 0:
             raise ProtocolError(f"{name}: empty payload", R_EMPTY, name)
@@ -231,33 +271,80 @@ def _decode_imu(data) -> Imu:
     if n < IMU_FIXED_SIZE:
         raise ProtocolError(f"Imu: binary payload of {n} bytes is shorter than the {IMU_FIXED_SIZE}-byte layout",
                             R_LAYOUT, "Imu")
-    _, version, flags, t_ns, gx, gy, gz, ax, ay, az, wheel, seq, id_len = _IMU.unpack_from(data, 0)
+    _, version, *values, id_len = _IMU.unpack_from(data, 0)
     if n != IMU_FIXED_SIZE + id_len:
         raise ProtocolError(f"Imu: binary payload of {n} bytes, expected {IMU_FIXED_SIZE + id_len} "
                             f"({IMU_FIXED_SIZE} and a {id_len}-byte bus_id)", R_LAYOUT, "Imu")
+    _check_version(version, "Imu")
+    return _imu(version, _bus_id(data[IMU_FIXED_SIZE:], "Imu"), values, "Imu", "Imu")
+
+
+def _decode_imu_batch(data) -> ImuBatch:
+    """An ImuBatch from its binary layout, checked as pydantic would check it (ProtocolError otherwise)."""
+    n, name = len(data), "ImuBatch"
+    if n < IMU_BATCH_FIXED_SIZE:
+        raise ProtocolError(f"{name}: binary payload of {n} bytes is shorter than its {IMU_BATCH_FIXED_SIZE}-byte "
+                            f"header", R_LAYOUT, name)
+    _, version, flags, seq, count, id_len = _IMU_BATCH.unpack_from(data, 0)
+    start = IMU_BATCH_FIXED_SIZE + id_len
+    if n != start + count * _IMU_RECORD.size:
+        raise ProtocolError(f"{name}: binary payload of {n} bytes, expected {start + count * _IMU_RECORD.size} "
+                            f"({IMU_BATCH_FIXED_SIZE}, a {id_len}-byte bus_id and {count} samples of "
+                            f"{_IMU_RECORD.size})", R_LAYOUT, name)
+    _check_version(version, name)
+    if flags & ~_IMU_BATCH_SEQ:
+        raise ProtocolError(f"{name}: unknown flags 0x{flags:02x} in the binary layout", R_LAYOUT, name)
+    if not 1 <= count <= IMU_BATCH_MAX:
+        raise ProtocolError(f"{name}: samples: {count} samples, must be 1 to {IMU_BATCH_MAX}", R_FIELD, name)
+    bus_id = _bus_id(data[IMU_BATCH_FIXED_SIZE:start], name)
+    samples, t_prev = [], -1
+    for i, values in enumerate(_IMU_RECORD.iter_unpack(data[start:])):
+        if values[1] <= t_prev:
+            raise ProtocolError(f"{name}: samples[{i}]: t_ns {values[1]} is not after the sample before ({t_prev})",
+                                R_FIELD, name)
+        t_prev = values[1]
+        samples.append(_imu(version, bus_id, values, f"{name}: samples[{i}]", name))
+    return _built(ImuBatch, _IMU_BATCH_FIELDS, {"version": version, "type": "imu_batch", "bus_id": bus_id,
+                                               "samples": samples, "seq": seq if flags & _IMU_BATCH_SEQ else None})
+
+
+def _check_version(version: int, name: str) -> None:
     if version != PROTOCOL_VERSION:
-        raise ProtocolError(f"Imu: wrong protocol version {version} (this build speaks {PROTOCOL_VERSION})",
-                            R_VERSION, "Imu")
+        raise ProtocolError(f"{name}: wrong protocol version {version} (this build speaks {PROTOCOL_VERSION})",
+                            R_VERSION, name)
+
+
+def _bus_id(raw, name: str) -> str:
+    try:
+        return check_id(bytes(raw).decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ProtocolError(f"{name}: bus_id is not UTF-8 (byte {e.start})", R_UTF8, name) from None
+    except ValueError as e:
+        raise ProtocolError(f"{name}: bus_id: {e}", R_FIELD, name) from None
+
+
+def _imu(version: int, bus_id: str, values, where: str, name: str) -> Imu:
+    """The Imu of a layout's values (flags, t_ns, the 7 floats, seq), checked as pydantic would check them.
+    where: what an error names (the message, or a batch's sample); name: the message type received."""
+    flags, t_ns, gx, gy, gz, ax, ay, az, wheel, seq = values
     if flags & ~(_IMU_WHEEL | _IMU_SEQ):
-        raise ProtocolError(f"Imu: unknown flags 0x{flags:02x} in the binary layout", R_LAYOUT, "Imu")
+        raise ProtocolError(f"{where}: unknown flags 0x{flags:02x} in the binary layout", R_LAYOUT, name)
     if not math.isfinite(gx + gy + gz + ax + ay + az + wheel):  # one test: finite but for NaN, inf or overflow
         for field, v in zip(_IMU_FLOATS, (gx, gy, gz, ax, ay, az, wheel)):
             if not math.isfinite(v):
-                raise ProtocolError(f"Imu: {field}: must be a finite number, got {v}", R_FIELD, "Imu")
-    try:
-        bus_id = check_id(bytes(data[IMU_FIXED_SIZE:]).decode("utf-8"))
-    except UnicodeDecodeError as e:
-        raise ProtocolError(f"Imu: bus_id is not UTF-8 (byte {e.start})", R_UTF8, "Imu") from None
-    except ValueError as e:
-        raise ProtocolError(f"Imu: bus_id: {e}", R_FIELD, "Imu") from None
-    # Every field checked above: the model is built as pydantic's model_construct builds it (without the
-    # loop over its fields: half the cold CPU of model_construct here).
-    msg = _new(Imu)
-    _setattr(msg, "__dict__", {
+                raise ProtocolError(f"{where}: {field}: must be a finite number, got {v}", R_FIELD, name)
+    return _built(Imu, _IMU_FIELDS, {
         "version": version, "type": "imu", "bus_id": bus_id, "t_ns": t_ns, "gyro_x": gx, "gyro_y": gy,
         "gyro_z": gz, "accel_x": ax, "accel_y": ay, "accel_z": az,
         "wheel_speed": wheel if flags & _IMU_WHEEL else None, "seq": seq if flags & _IMU_SEQ else None})
-    _setattr(msg, "__pydantic_fields_set__", set(_IMU_FIELDS))
+
+
+def _built(cls: type[M], fields: tuple[str, ...], values: dict) -> M:
+    """Every field checked by the caller: the model built as pydantic's model_construct builds it (without the
+    loop over its fields: half the cold CPU of model_construct for an Imu)."""
+    msg = _new(cls)
+    _setattr(msg, "__dict__", values)
+    _setattr(msg, "__pydantic_fields_set__", set(fields))
     _setattr(msg, "__pydantic_extra__", None)
     _setattr(msg, "__pydantic_private__", None)
     return msg

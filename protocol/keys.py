@@ -13,6 +13,7 @@ an id to build a subscription / query pattern; publishing helpers refuse pattern
 | detections(rsu)                      | toptag/v1/detections/<rsu>                         | TagDetections  |
 | rsu_diagnosis(intersection, rsu, bus)| toptag/v1/diag/<intersection>/<rsu>/<bus>          | RsuDiagnosis   |
 | imu(bus)                             | toptag/v1/imu/<bus>                                | Imu            |
+| imu_batch(bus)                       | toptag/v1/imu_batch/<bus>                          | ImuBatch       |
 | ground_truth(bus)                    | toptag/v1/truth/<bus>                              | GroundTruth    |
 | gnss(bus)                            | toptag/v1/gnss/<bus>                               | GnssFix        |
 | fused_pose(bus)                      | toptag/v1/fused/<bus>                              | FusedPose      |
@@ -40,6 +41,7 @@ LAYOUT: dict[str, tuple[str, tuple[str, ...]]] = {
     "tag_detections": ("detections", ("rsu",)),
     "rsu_diagnosis": ("diag", ("intersection", "rsu", "bus")),
     "imu": ("imu", ("bus",)),
+    "imu_batch": ("imu_batch", ("bus",)),
     "ground_truth": ("truth", ("bus",)),
     "gnss": ("gnss", ("bus",)),
     "fused_pose": ("fused", ("bus",)),
@@ -102,6 +104,11 @@ def imu(bus: str) -> str:
     return _build("imu", bus)
 
 
+def imu_batch(bus: str) -> str:
+    """A bus's IMU samples several to a message (ImuBatch); imu(bus) carries them one at a time."""
+    return _build("imu_batch", bus)
+
+
 def ground_truth(bus: str) -> str:
     return _build("ground_truth", bus)
 
@@ -144,7 +151,7 @@ def key_of(msg) -> str:
         return rsu_diagnosis(msg.intersection_id, msg.rsu_id, msg.bus_id)
     if t in ("frame", "rsu_status", "tag_detections"):
         return _build(t, msg.rsu_id)
-    if t in ("imu", "ground_truth", "gnss", "fused_pose"):
+    if t in ("imu", "imu_batch", "ground_truth", "gnss", "fused_pose"):
         return _build(t, msg.bus_id)
     if t == "active_sessions":
         return sessions(msg.intersection_id, msg.responder_id)

@@ -426,6 +426,36 @@ class Imu(Message):
     seq: Count | None = None
 
 
+# The most samples one ImuBatch holds: a second at 100 Hz (a sender's period is tens of ms).
+IMU_BATCH_MAX = 100
+
+
+class ImuBatch(Message):
+    """Consecutive IMU/odometry samples of one bus, oldest first, on keys.imu_batch(bus_id): what a sender
+    gathered over one period (the simulator: a bus agent's filter cycle, 4 samples at 100 Hz). Why: the
+    agent takes its inputs in once a cycle anyway, and a message costs its receiver a wake-up of Zenoh's
+    thread and a decode each, whatever it holds (`toptag bench bus`, docs/real-time.md). A sender that has
+    one sample at a time sends Imu on keys.imu(bus_id); the agent takes both. seq: +1 per batch (the
+    samples keep their own)."""
+
+    TYPE: ClassVar[str] = "imu_batch"
+    type: Literal["imu_batch"] = "imu_batch"
+    bus_id: Id
+    samples: list[Imu] = Field(min_length=1, max_length=IMU_BATCH_MAX)
+    seq: Count | None = None
+
+    @model_validator(mode="after")
+    def _one_bus_in_order(self) -> ImuBatch:
+        t_prev = -1
+        for i, s in enumerate(self.samples):
+            if s.bus_id != self.bus_id:
+                raise ValueError(f"samples[{i}]: bus_id {s.bus_id!r} is not the batch's {self.bus_id!r}")
+            if s.t_ns <= t_prev:
+                raise ValueError(f"samples[{i}]: t_ns {s.t_ns} is not after the sample before ({t_prev})")
+            t_prev = s.t_ns
+        return self
+
+
 class GroundTruth(Message):
     """The true state of one bus (simulator or survey-grade reference) on keys.ground_truth(bus_id)."""
 
@@ -499,5 +529,5 @@ class FusedPose(Message):
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
     m.TYPE: m for m in (Approach, Leave, ActiveSessions, PoseFix, RsuStatus, RsuDiagnosis, TagDetections, Frame, Imu,
-                        GroundTruth, GnssFix, FusedPose)
+                        ImuBatch, GroundTruth, GnssFix, FusedPose)
 }

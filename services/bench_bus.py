@@ -1,12 +1,14 @@
 """`toptag bench bus`: the bus agent process's CPU at 100 Hz IMU and 40 fixes/s, as % of one core.
 
-    toptag bench bus [--duration 30] [--rsus 4] [--fix-hz 10] [--latency-ms 100] [--jitter-ms 30] [--json]
+    toptag bench bus [--duration 30] [--rsus 4] [--fix-hz 10] [--latency-ms 100] [--jitter-ms 30]
+                     [--imu-per-message 4] [--json]
 
 Starts the real agent (`toptag bus`, its own process, the demo's bus-42 and the corner site's map, whose 45 m
 approach radius holds the drive from its start) connected in peer mode
 to this process's Zenoh peer (tcp/127.0.0.1:<free port>, multicast scouting off). This process plays one
 drive of that bus through the demo's intersection in real time (the fusion study's left turn from the
-west, slowed so that it lasts --duration s): IMU/odometry at 100 Hz (sim.motion.ImuModel), GNSS at 1 Hz
+west, slowed so that it lasts --duration s): IMU/odometry at 100 Hz (sim.motion.ImuModel; --imu-per-message
+samples to an ImuBatch, sent at its newest sample's time, as the simulator sends them; 1: each an Imu), GNSS at 1 Hz
 from the truth, and once the agent has announced itself, PoseFixes from --rsus corner RSUs at --fix-hz
 each (sim.studies.fusion's fix model, every RSU seeing the bus the whole way), each published
 latency ± jitter ms after its capture as an RSU would. It subscribes to everything the agent publishes
@@ -32,7 +34,17 @@ import numpy as np
 
 from protocol import keys
 from protocol.convert import fix_to_message
-from protocol.messages import Approach, ClockInfo, FusedPose, GnssFix, Imu, PoseFix, RsuDiagnosis
+from protocol.messages import (
+    IMU_BATCH_MAX,
+    Approach,
+    ClockInfo,
+    FusedPose,
+    GnssFix,
+    Imu,
+    ImuBatch,
+    PoseFix,
+    RsuDiagnosis,
+)
 from protocol.transport import MessagePublisher, open_session, subscribe_messages
 from services.processes import TOPTAG, ProcessGroup, cpu_seconds, free_port
 from sim.motion import DEFAULT_T0_NS, ImuModel, bus_trajectory
@@ -129,7 +141,7 @@ def _fixes_in(h) -> int:
 
 def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_ms: float = 100.0,
         jitter_ms: float = 30.0, seed: int = 0, logs: str | None = None, agent_source: str | None = None,
-        also: list[str] | None = None) -> dict:
+        also: list[str] | None = None, imu_per_message: int = 4) -> dict:
     """Play the drive to a freshly started agent and measure it (see the module doc). agent_source: run
     the agent from that checkout of toptag instead of this one (PYTHONPATH), to compare two versions
     with the same bench. also: checkouts whose agents run beside it on the same drive at the same time
@@ -146,7 +158,9 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
     subs = [subscribe_messages(session, keys.fused_pose(bus), FusedPose, got.on_fused),
             subscribe_messages(session, keys.rsu_diagnosis(INTERSECTION, keys.ANY, bus), RsuDiagnosis, got.on_diagnosis),
             subscribe_messages(session, keys.approach(INTERSECTION, bus), Approach, got.on_approach)]
-    imu_pub = MessagePublisher(session, keys.imu(bus), Imu)
+    imu_pub = (MessagePublisher(session, keys.imu_batch(bus), ImuBatch) if imu_per_message > 1
+               else MessagePublisher(session, keys.imu(bus), Imu))
+    imu_batch: list[Imu] = []
     gnss_pub = MessagePublisher(session, keys.gnss(bus), GnssFix)
     fix_pubs: dict[str, MessagePublisher] = {}
     tmp = None if logs else tempfile.TemporaryDirectory(prefix="toptag-bench-bus-")
@@ -192,8 +206,15 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
                 got.counting = True
             if kind == "imu":
                 t, g, ax, ay, w = item
-                imu_pub.put(Imu(bus_id=bus, t_ns=start_ns + t, gyro_z=g, accel_x=ax, accel_y=ay, wheel_speed=w,
-                                seq=published["imu"]))
+                sample = Imu(bus_id=bus, t_ns=start_ns + t, gyro_z=g, accel_x=ax, accel_y=ay, wheel_speed=w,
+                             seq=published["imu"])
+                if imu_per_message == 1:
+                    imu_pub.put(sample)
+                else:
+                    imu_batch.append(sample)
+                    if len(imu_batch) == imu_per_message:
+                        imu_pub.put(ImuBatch(bus_id=bus, samples=imu_batch, seq=published["imu"] // imu_per_message))
+                        imu_batch = []
             elif kind == "gnss":
                 t, x, y = item
                 gnss_pub.put(GnssFix(bus_id=bus, t_ns=start_ns + t, x=x, y=y, sigma_m=GNSS_SIGMA_M))
@@ -228,7 +249,8 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
     return {
         "agent_cpu_s": round(cpu, 3), "window_s": round(window, 3),
         "agent_cpu_fraction": round(cpu / window, 4) if window > 0 else None,
-        "imu_hz": round(published["imu"] / window, 1), "fixes_per_s": round(published["fix"] / window, 1),
+        "imu_hz": round(published["imu"] / window, 1), "imu_per_message": imu_per_message,
+        "fixes_per_s": round(published["fix"] / window, 1),
         "published": published, "rsus": n_rsu, "fix_hz_per_rsu": fix_hz, "latency_ms": latency_ms,
         "jitter_ms": jitter_ms, "speed_mps": round(drive.speed_mps, 2),
         "late_sends_over_5ms": sum(x > 0.005 for x in late),
@@ -251,7 +273,8 @@ def table(r: dict) -> str:
     ok = rec["fused_ok_fraction"]
     return "\n".join([
         f"machine: {r['machine']}; load average {' '.join(map(str, r['load_average']))}",
-        f"drive {r['window_s']:.1f} s at {r['speed_mps']} m/s: IMU {r['imu_hz']} Hz, fixes {r['fixes_per_s']}/s "
+        f"drive {r['window_s']:.1f} s at {r['speed_mps']} m/s: IMU {r['imu_hz']} Hz ({r['imu_per_message']} to a "
+        f"message), fixes {r['fixes_per_s']}/s "
         f"({r['rsus']} RSUs x {r['fix_hz_per_rsu']:g} Hz, {r['latency_ms']:g} ± {r['jitter_ms']:g} ms after capture), "
         f"GNSS {r['published']['gnss']}; sends late by > 5 ms: {r['late_sends_over_5ms']}",
         f"agent: fused {rec['fused']} ({rec['fused_hz']} Hz, ok {'-' if ok is None else f'{100 * ok:.1f}'} %), "
@@ -271,6 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--latency-ms", type=float, default=100.0, help="mean delay from capture to publish (default 100)")
     p.add_argument("--jitter-ms", type=float, default=30.0, help="its standard deviation (default 30)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--imu-per-message", type=int, default=4, metavar="N",
+                   help=f"IMU samples to a message (ImuBatch), as the simulator's default scenario sends them "
+                        f"(default 4; 1: each sample an Imu on its own key, as an agent before ImuBatch takes them; "
+                        f"at most {IMU_BATCH_MAX})")
     p.add_argument("--agent-source", default=None, metavar="DIR",
                    help="run the agent from this checkout of toptag (e.g. an older worktree) to compare versions")
     p.add_argument("--also", action="append", default=None, metavar="DIR",
@@ -286,7 +313,11 @@ def main(argv: list[str] | None = None) -> int:
     if not (a.duration > 0 and math.isfinite(a.duration)):
         print("toptag bench bus: --duration must be a positive number of seconds")
         return 2
-    r = run(a.duration, a.rsus, a.fix_hz, a.latency_ms, a.jitter_ms, a.seed, a.logs, a.agent_source, a.also)
+    if not 1 <= a.imu_per_message <= IMU_BATCH_MAX:
+        print(f"toptag bench bus: --imu-per-message must be 1 to {IMU_BATCH_MAX}, got {a.imu_per_message}")
+        return 2
+    r = run(a.duration, a.rsus, a.fix_hz, a.latency_ms, a.jitter_ms, a.seed, a.logs, a.agent_source, a.also,
+            a.imu_per_message)
     print(json.dumps(r, indent=1) if a.json else "toptag bench bus:\n" + table(r))
     return 0 if r["agent_exit_code"] == 0 and all(a["agent_exit_code"] == 0 for a in r["also"]) else 1
 

@@ -34,7 +34,8 @@ from services.recording import Recorded, read_recording, recording_channels
 log = logging.getLogger(__name__)
 
 # What the simulator publishes: a recorded drive's inputs to the RSUs and buses.
-SENSOR_KEYS = [keys.frame(keys.ANY), keys.imu(keys.ANY), keys.gnss(keys.ANY), keys.ground_truth(keys.ANY)]
+SENSOR_KEYS = [keys.frame(keys.ANY), keys.imu(keys.ANY), keys.imu_batch(keys.ANY), keys.gnss(keys.ANY),
+               keys.ground_truth(keys.ANY)]
 PROGRESS_S = 5.0
 
 

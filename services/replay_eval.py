@@ -6,7 +6,8 @@ Reads the bus's IMU samples and the RSUs' pose fixes from a recording (`toptag r
 to a fresh bus filter (toptag.fusion, the agent's filter with the agent's rules: a fix is added when
 it was received, an IMU gap over IMU_GAP_RESET_S restarts the filter from what the last one learnt of
 the RSUs, BusFilter.memory) in the order the recorder received them. `--fix-latency-ms MS` instead
-re-times the fixes as arriving MS after their capture (IMU and truth at their own stamps): the same
+re-times the fixes as arriving MS after their capture (IMU and truth at their own stamps, an IMU sample
+first at an instant: however the recording batched them, ImuBatch or Imu, the same order): the same
 live fixes as a quiet machine would deliver them, e.g. from a demo recorded on a busy one. Every RSU the
 filter flagged for drift is listed (`drift_flags`: when, by which test, the advice). Wherever the recording holds the truth (the simulator's), the filter's estimate at the
 truth's time, with what it knew when the truth was received, is scored as the monitor scores the live
@@ -26,7 +27,7 @@ import numpy as np
 from protocol import codec, keys
 from protocol.codec import ProtocolError
 from protocol.convert import fix_from_message
-from protocol.messages import FusedPose, GroundTruth, Imu, PoseFix
+from protocol.messages import FusedPose, GroundTruth, Imu, ImuBatch, PoseFix
 from services.bus.agent import IMU_GAP_RESET_S, BusSettings
 from services.monitor import ErrorStats, TruthTrack
 from services.recording import read_recording
@@ -122,26 +123,28 @@ class OfflineFusion:
 
 
 def _messages(recording: str | Path, bus: str, fix_latency_ms: float | None, bad: list[int]):
-    """(arrival ns, message) of the bus's IMU, fixes, truth and fused poses in the order the recorder
-    received them; with fix_latency_ms, IMU and truth at their stamps and each fix that long after its
-    capture (fused poses left out: the live bus saw other arrivals)."""
-    wanted = [keys.imu(bus), keys.pose_fix(keys.ANY, bus, keys.ANY), keys.ground_truth(bus), keys.fused_pose(bus)]
+    """(arrival ns, message) of the bus's IMU samples (a batch's one by one), fixes, truth and fused poses in
+    the order the recorder received them; with fix_latency_ms, IMU and truth at their stamps and each fix that
+    long after its capture (fused poses left out: the live bus saw other arrivals)."""
+    wanted = [keys.imu(bus), keys.imu_batch(bus), keys.pose_fix(keys.ANY, bus, keys.ANY), keys.ground_truth(bus),
+              keys.fused_pose(bus)]
     out = []
     for k, rec in enumerate(read_recording(recording, wanted)):
-        if rec.message_type not in (Imu, PoseFix, GroundTruth, FusedPose):
+        if rec.message_type not in (Imu, ImuBatch, PoseFix, GroundTruth, FusedPose):
             continue
         try:
             m = codec.decode(rec.payload, rec.message_type, key=rec.key)
         except ProtocolError:
             bad[0] += 1  # the live bus rejected it too
             continue
-        if fix_latency_ms is None:
-            yield rec.log_time_ns, m
-        elif isinstance(m, PoseFix):
-            out.append((m.capture_time_ns + int(round(fix_latency_ms * 1e6)), k, m))
-        elif not isinstance(m, FusedPose):
-            out.append((m.t_ns, k, m))
-    for at, _, m in sorted(out, key=lambda e: e[:2]):
+        for m in (m.samples if isinstance(m, ImuBatch) else (m,)):  # a batch's samples as the live bus took them
+            if fix_latency_ms is None:
+                yield rec.log_time_ns, m
+            elif isinstance(m, PoseFix):
+                out.append((m.capture_time_ns + int(round(fix_latency_ms * 1e6)), 1, k, m))
+            elif not isinstance(m, FusedPose):  # at its stamp: an IMU sample before the rest of that instant
+                out.append((m.t_ns, 0 if isinstance(m, Imu) else 1, k, m))
+    for at, _, _, m in sorted(out, key=lambda e: e[:3]):
         yield at, m
 
 

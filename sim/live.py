@@ -11,10 +11,12 @@ Plays a scenario (sim.scenario; default: the bundled toptag/data/demo/scenario.j
   faults (sim.faults; World.capture) change that for one RSU: a clock offset moves the stamp (and the
   clock is "system", undisciplined), a capture latency renders an earlier instant, a drift renders
   with the turned camera.
-- every bus on the road: Imu at imu_hz (keys.imu; gyro_z, accel_x/y gravity-compensated, wheel_speed,
-  seq +1 per sample), GroundTruth at truth_hz (keys.ground_truth; z = roof height), GnssFix at gnss_hz
-  (keys.gnss; N(0, gnss_sigma_m) per axis, none inside the map's gnss_shadow_radius). Samples lie on
-  fixed grids from the start time and are published once their time has come.
+- every bus on the road: its IMU samples at imu_hz (gyro_z, accel_x/y gravity-compensated, wheel_speed,
+  seq +1 per sample), imu_per_message to an ImuBatch on keys.imu_batch sent at its newest sample's time (a
+  sensor window's last batch may hold fewer; with 1, an Imu per sample on keys.imu), GroundTruth at
+  truth_hz (keys.ground_truth; z = roof height), GnssFix at gnss_hz (keys.gnss; N(0, gnss_sigma_m) per
+  axis, none inside the map's gnss_shadow_radius). Samples lie on fixed grids from the start time and are
+  published once their time has come.
 A bus exists only during its legs (see sim.world): between legs nothing is published for it.
 
 Processes and honest timing: the frames are rendered in a render process (multiprocessing, spawn
@@ -69,7 +71,7 @@ import cv2
 import numpy as np
 
 from protocol import keys
-from protocol.messages import ClockInfo, Frame, GnssFix, GroundTruth, Imu
+from protocol.messages import ClockInfo, Frame, GnssFix, GroundTruth, Imu, ImuBatch
 from protocol.transport import MessagePublisher
 from protocol.transport.runner import add_service_arguments, run_service, setup_logging
 from sim.scenario import bundled_scenario_path, load_scenario
@@ -106,7 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
 class _Publishers:
     def __init__(self, session, world: World):
         self.frames = {r: MessagePublisher(session, keys.frame(r), Frame) for r in world.rsu_ids}
-        self.imu = {b: MessagePublisher(session, keys.imu(b), Imu) for b in world.bus_ids}
+        batched = world.scenario.imu_per_message > 1
+        self.imu = {b: MessagePublisher(session, *((keys.imu_batch(b), ImuBatch) if batched else (keys.imu(b), Imu)))
+                    for b in world.bus_ids}
         self.truth = {b: MessagePublisher(session, keys.ground_truth(b), GroundTruth) for b in world.bus_ids}
         self.gnss = {b: MessagePublisher(session, keys.gnss(b), GnssFix) for b in world.bus_ids}
 
@@ -131,7 +135,8 @@ class SensorLoop(threading.Thread):
     def __init__(self, world: World, pubs: _Publishers, stop: threading.Event, end_ns: int | None = None):
         super().__init__(name="sim-sensors", daemon=True)
         self.world, self.pubs, self.stop_event, self.end_ns = world, pubs, stop, end_ns
-        self.counts: dict[str, int] = defaultdict(int)
+        self.counts: dict[str, int] = defaultdict(int)  # sent by kind: messages, IMU samples
+        self._imu_batches: dict[str, int] = defaultdict(int)  # ImuBatch seq per bus
         self.max_delay_ns = 0  # worst publish delay of an IMU sample behind its time, since last read
         self.frame_delays_ns: list[int] = []  # each frame's publication behind its tick, over the run
         self.error: BaseException | None = None
@@ -195,12 +200,20 @@ class SensorLoop(threading.Thread):
     def compute(self, t_from: int, t_to: int) -> None:
         """The samples of (t_from, t_to], queued as messages for their times."""
         w, p = self.world, self.pubs
+        per_message = w.scenario.imu_per_message
         for bus in w.bus_ids:
             b = w.imu_between(bus, t_from, t_to)
-            imu = [(int(b.t_ns[i]), Imu(bus_id=bus, t_ns=int(b.t_ns[i]), gyro_z=float(b.gyro_z[i]),
-                                        accel_x=float(b.accel_x[i]), accel_y=float(b.accel_y[i]),
-                                        wheel_speed=float(b.wheel_speed[i]), seq=int(b.seq[i])))
-                   for i in range(len(b))]
+            samples = [Imu(bus_id=bus, t_ns=int(b.t_ns[i]), gyro_z=float(b.gyro_z[i]), accel_x=float(b.accel_x[i]),
+                           accel_y=float(b.accel_y[i]), wheel_speed=float(b.wheel_speed[i]), seq=int(b.seq[i]))
+                       for i in range(len(b))]
+            if per_message == 1:
+                imu = [(s.t_ns, s) for s in samples]
+            else:  # each batch at its newest sample's time
+                imu = []
+                for k in range(0, len(samples), per_message):
+                    batch = samples[k:k + per_message]
+                    self._imu_batches[bus] += 1
+                    imu.append((batch[-1].t_ns, ImuBatch(bus_id=bus, samples=batch, seq=self._imu_batches[bus])))
             truth = [(s.t_ns, GroundTruth(bus_id=bus, t_ns=s.t_ns, x=s.x, y=s.y, z=s.z, yaw=s.yaw, speed=s.speed,
                                           yaw_rate=s.yaw_rate)) for s in w.truth_between(bus, t_from, t_to)]
             gnss = [(g.t_ns, GnssFix(bus_id=bus, t_ns=g.t_ns, x=g.x, y=g.y, sigma_m=g.sigma_m))
@@ -222,10 +235,11 @@ class SensorLoop(threading.Thread):
                     self.frame_delays_ns.append(time.time_ns() - items[j][0])
                     self.frame_published(items[j][1].rsu_id)
                 j += 1
-            if j > i:
+            if j > i and kind != "imu":
                 self.counts[kind] += j - i
-                if kind == "imu":
-                    self.max_delay_ns = max(self.max_delay_ns, time.time_ns() - items[j - 1][0])
+            elif j > i:  # counted in samples, one or several to a message
+                self.counts[kind] += sum(len(m.samples) if isinstance(m, ImuBatch) else 1 for _, m in items[i:j])
+                self.max_delay_ns = max(self.max_delay_ns, time.time_ns() - items[j - 1][0])
             q[3] = j
             if j < len(items):
                 wake = min(wake, items[j][0])

@@ -12,7 +12,7 @@ default is toptag/data/demo/scenario.json, see `bundled_scenario_path()`):
                          {"route": "stop", "approach": "s", "start_s": 30}]}],
      "trucks": [{"length": 8, "width": 2.5, "height": 3.6,
                  "legs": [{"route": "straight", "approach": "w", "start_s": 5}]}],
-     "imu_hz": 100, "truth_hz": 20, "gnss_hz": 1, "gnss_sigma_m": 2.0,
+     "imu_hz": 100, "imu_per_message": 4, "truth_hz": 20, "gnss_hz": 1, "gnss_sigma_m": 2.0,
      "image_model": {"noise_sigma": 3.0}, "imu_model": {"gyro_bias_sigma": 0.005},
      "loop": true, "loop_gap_s": 3, "seed": 1,
      "faults": {"rsu-ne": {"clock_offset_ms": 40},
@@ -132,6 +132,9 @@ class ImuNoise(BaseModel):
         return ImuModel(rate_hz=rate_hz, **self.model_dump())
 
 
+IMU_PER_MESSAGE_MAX = 100
+
+
 class Scenario(BaseModel):
     """A live-simulator scenario file (see the module docstring). Paths are as written in the file
     until `load_scenario` resolves them against the file's directory."""
@@ -145,6 +148,13 @@ class Scenario(BaseModel):
     buses: list[BusEntry] = Field(default_factory=list)
     trucks: list[TruckEntry] = Field(default_factory=list)
     imu_hz: float = Field(default=100.0, gt=0, le=1000)
+    # A bus's IMU samples this many to a message (ImuBatch on keys.imu_batch, sent when its newest sample's
+    # time has come; 1: each sample an Imu on keys.imu as it comes). 4 at 100 Hz: one message per filter
+    # cycle of the bus agent (25 Hz), which takes its inputs in once a cycle anyway; each message costs the
+    # agent a wake-up of Zenoh's thread and a decode (`toptag bench bus --imu-per-message`, docs/real-time.md).
+    # At most what one ImuBatch holds (protocol.messages.IMU_BATCH_MAX; the core imports no protocol, a test
+    # checks that they agree).
+    imu_per_message: int = Field(default=4, ge=1, le=IMU_PER_MESSAGE_MAX)
     truth_hz: float = Field(default=20.0, gt=0, le=1000)
     gnss_hz: float = Field(default=1.0, gt=0, le=100)
     gnss_sigma_m: float = Field(default=2.0, gt=0)

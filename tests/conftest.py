@@ -230,6 +230,7 @@ def make_samples() -> dict:
         GnssFix,
         GroundTruth,
         Imu,
+        ImuBatch,
         Leave,
         PoseFix,
         RsuDiagnosis,
@@ -273,6 +274,9 @@ def make_samples() -> dict:
               image=b"\xff\xd8" + bytes(range(256)) * 40 + b"\xff\xd9"),
         Imu(bus_id=vehicle.id, t_ns=t, gyro_x=0.001, gyro_y=-0.002, gyro_z=0.05, accel_x=0.3, accel_y=0.01,
             accel_z=9.81, wheel_speed=5.5, seq=99),
+        ImuBatch(bus_id=vehicle.id, seq=24, samples=[
+            Imu(bus_id=vehicle.id, t_ns=t + 10_000_000 * k, gyro_z=0.05 + 0.01 * k, accel_x=0.3, accel_y=-0.01 * k,
+                wheel_speed=None if k == 2 else 5.5, seq=None if k == 1 else 96 + k) for k in range(4)]),
         GroundTruth(bus_id=vehicle.id, t_ns=t, x=1.0, y=2.0, z=3.0, yaw=-3.0, speed=5.0, yaw_rate=0.1),
         GnssFix(bus_id=vehicle.id, t_ns=t, x=-41.0, y=-1.5, sigma_m=2.0),
         FusedPose(bus_id=vehicle.id, t_ns=t, x=1.0, y=2.0, yaw=0.1, speed=5.0, yaw_rate=0.05, covariance=cov,

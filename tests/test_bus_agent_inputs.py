@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from protocol import keys
-from protocol.messages import GnssFix, Imu, PoseFix
+from protocol.messages import GnssFix, Imu, ImuBatch, PoseFix
 from protocol.transport import MessagePublisher, subscribe_messages
 from services.bus.agent import BusAgent, main as agent_main
 from toptag.site import MapFile
@@ -54,6 +54,33 @@ def test_the_agent_feeds_what_arrived_to_its_filter_at_its_step(peer_pair):
         watch.close()
         imu.close()
         gnss.close()
+    finally:
+        agent.close()
+
+
+def test_the_agent_takes_imu_samples_several_to_a_message(peer_pair):
+    """ImuBatch, as the simulator sends them: each batch's samples to the filter in order, as if one by one."""
+    a, b = peer_pair
+    vehicle = Vehicle.load(DEMO / "bus-42.json")
+    agent = BusAgent(b, vehicle, MapFile.load(DEMO / "map.json"))
+    try:
+        bus = vehicle.id
+        seen = []
+        watch = subscribe_messages(b, keys.imu_batch(bus), ImuBatch, seen.append)
+        pub = MessagePublisher(a, keys.imu_batch(bus), ImuBatch)
+        assert pub.wait_matching(30)
+        batches = [ImuBatch(bus_id=bus, seq=k, samples=[
+            Imu(bus_id=bus, t_ns=T0 + 10_000_000 * (4 * k + i), gyro_z=0.01, accel_x=0.1, wheel_speed=5.0 + k,
+                seq=4 * k + i) for i in range(4)]) for k in range(3)]
+        for m in batches:
+            pub.put(m)
+        assert wait_until(lambda: len(seen) == len(batches), 60)
+        agent.take_inputs()
+        c = agent.filter.counters()
+        assert c["imu_samples"] == 12 and c["imu_rejected"] == 0
+        assert agent._last_imu_ns == batches[-1].samples[-1].t_ns and agent._wheel_speed == 7.0
+        watch.close()
+        pub.close()
     finally:
         agent.close()
 

@@ -182,7 +182,7 @@ def test_demo_records_every_kind_of_message(demo):
     for m in read_recording(demo.recording):
         name = m.message_type.__name__ if m.message_type else "other"
         kinds[name] = kinds.get(name, 0) + 1
-    for name in ("Frame", "Imu", "GroundTruth", "GnssFix", "PoseFix", "FusedPose", "RsuStatus", "TagDetections",
+    for name in ("Frame", "ImuBatch", "GroundTruth", "GnssFix", "PoseFix", "FusedPose", "RsuStatus", "TagDetections",
                  "Approach"):
         assert kinds.get(name, 0) > 0, kinds
     assert "other" not in kinds

@@ -17,6 +17,7 @@ from protocol import (
     Frame,
     FusedPose,
     Imu,
+    ImuBatch,
     Leave,
     PoseFix,
     ProtocolError,
@@ -206,6 +207,61 @@ def test_bad_binary_imu_payloads_are_rejected_with_one_clear_line(payload, reaso
         decode(payload, Imu)
     assert ei.value.reason == reason and text in str(ei.value)
     assert str(ei.value).startswith("Imu: ") and "\n" not in str(ei.value)
+
+
+BATCH = ImuBatch(bus_id="bus-42", seq=5, samples=[IMU, IMU.model_copy(update={"t_ns": 9, "seq": None,
+                                                                               "wheel_speed": None})])
+# The wire bytes of BATCH, written out (protocol/codec.py's layout): magic, version, flags (seq present), seq,
+# the sample count, the bus_id's length, the bus_id, then each sample's flags, t_ns, seven floats and seq.
+BATCH_BINARY = (bytes.fromhex("54544942" "01" "02" "0000000000000005" "0002" "0006") + b"bus-42"
+                + IMU_BINARY[5:78] + bytes.fromhex("00" "0000000000000009") + IMU_BINARY[14:62]
+                + bytes(8) + bytes(8))
+
+
+def test_imu_batch_has_a_fixed_binary_layout_and_a_json_form():
+    assert encode(BATCH) == BATCH_BINARY
+    as_json = BATCH.model_dump_json().encode()
+    for payload in (BATCH_BINARY, as_json):
+        back = decode(payload, ImuBatch, key=keys.imu_batch("bus-42"))
+        assert back == BATCH and decode_any(payload) == BATCH and back.samples[1].wheel_speed is None
+        assert back.model_dump_json().encode() == as_json and encode(back) == BATCH_BINARY
+    with pytest.raises(ProtocolError, match="Imu: got a binary imu_batch payload"):
+        decode(BATCH_BINARY, Imu)
+
+
+def test_an_imu_batch_is_of_one_bus_in_time_order():
+    with pytest.raises(ValidationError, match="samples.1.: bus_id 'bus-43' is not the batch's 'bus-42'"):
+        ImuBatch(bus_id="bus-42", samples=[IMU, IMU.model_copy(update={"t_ns": 9, "bus_id": "bus-43"})])
+    with pytest.raises(ValidationError, match="samples.1.: t_ns 7 is not after the sample before .7."):
+        ImuBatch(bus_id="bus-42", samples=[IMU, IMU])
+    with pytest.raises(ValidationError, match="at least 1 item"):
+        ImuBatch(bus_id="bus-42", samples=[])
+
+
+def _batch_with(offset: int, raw: bytes) -> bytes:
+    return BATCH_BINARY[:offset] + raw + BATCH_BINARY[offset + len(raw):]
+
+
+BAD_BATCH = [
+    (BATCH_BINARY[:10], "layout", "binary payload of 10 bytes is shorter than its 18-byte header"),
+    (BATCH_BINARY[:-1], "layout",
+     "binary payload of 169 bytes, expected 170 (18, a 6-byte bus_id and 2 samples of 73)"),
+    (_batch_with(4, b"\x02"), "version", "wrong protocol version 2 (this build speaks 1)"),
+    (_batch_with(5, b"\x01"), "layout", "unknown flags 0x01"),
+    (_batch_with(14, b"\x00\x00")[:24], "field", "samples: 0 samples, must be 1 to 100"),
+    (_batch_with(18, b"bus/42"), "field", "bus_id: id 'bus/42' contains forbidden character(s) /"),
+    (_batch_with(24 + 73, b"\x04"), "layout", "samples[1]: unknown flags 0x04"),
+    (_batch_with(24 + 73 + 1 + 8 + 16, struct.pack(">d", math.nan)), "field", "samples[1]: gyro_z: must be a finite"),
+    (_batch_with(24 + 73 + 1, struct.pack(">Q", 7)), "field", "samples[1]: t_ns 7 is not after the sample before (7)"),
+]
+
+
+@pytest.mark.parametrize("payload,reason,text", BAD_BATCH, ids=[b[2] for b in BAD_BATCH])
+def test_bad_binary_imu_batches_are_rejected_with_one_clear_line(payload, reason, text):
+    with pytest.raises(ProtocolError) as ei:
+        decode(payload, ImuBatch)
+    assert ei.value.reason == reason and text in str(ei.value)
+    assert str(ei.value).startswith("ImuBatch: ") and "\n" not in str(ei.value)
 
 
 def test_decode_accepts_zenoh_bytes_and_memoryview():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from protocol import codec, keys
-from protocol.messages import GroundTruth, Imu, PoseFix
+from protocol.messages import GroundTruth, Imu, ImuBatch, PoseFix
 from protocol.transport import encoding_for
 from services.recording import McapLog
 from services.replay_eval import evaluate, load_filter_config
@@ -31,6 +31,12 @@ def _put(log: McapLog, msg, at_ns: int) -> None:
 def drive(tmp_path_factory):
     """8 s of bus-42 crossing the demo intersection: IMU 100 Hz, truth 20 Hz, and fixes from two RSUs
     every 100 ms (truth + 2 cm noise) arriving 40-70 ms late, written as a recorder writes them."""
+    return _write_drive(tmp_path_factory.mktemp("drive") / "drive.mcap")
+
+
+def _write_drive(path, imu_per_message: int = 1):
+    """The drive of the fixture `drive`; its IMU samples imu_per_message to an ImuBatch, each batch received
+    with its newest sample, when more than one."""
     world = World(load_scenario(bundled_scenario_path()))
     world.start(T0)
     rng = np.random.default_rng(5)
@@ -54,7 +60,12 @@ def drive(tmp_path_factory):
                                   covariance=cov, method="level", tags_used=[1], reprojection_rms_px=0.1,
                                   frame_seq=int((s.t_ns - T0) // 100_000_000))
                     events.append((s.t_ns + 40_000_000 + j * 30_000_000, 2, fix))
-    path = tmp_path_factory.mktemp("drive") / "drive.mcap"
+    if imu_per_message > 1:
+        samples = [m for _, _, m in events if isinstance(m, Imu)]
+        events = [e for e in events if not isinstance(e[2], Imu)]
+        for k in range(0, len(samples), imu_per_message):
+            batch = samples[k:k + imu_per_message]
+            events.append((batch[-1].t_ns + 1_000_000, 0, ImuBatch(bus_id=BUS, samples=batch)))
     log = McapLog(path)
     for at, _, msg in sorted(events, key=lambda e: (e[0], e[1])):
         _put(log, msg, at)
@@ -71,6 +82,17 @@ def test_offline_fusion_is_bit_for_bit_repeatable_and_scored_against_truth(drive
     f = a["fused_vs_truth"]
     assert f["n"] > 100 and f["rms_m"] < FIX_SIGMA  # fusing two RSUs beats one fix
     assert 0.5 * FIX_SIGMA < a["fixes_vs_truth"]["rms_m"] < 2 * FIX_SIGMA
+
+
+@pytest.mark.unit
+def test_imu_samples_several_to_a_message_are_fused_as_one_by_one(drive, tmp_path):
+    """A recording of ImuBatches (as the simulator sends them) gives the filter the same samples: re-timed
+    at their own stamps, the same estimates to the last bit."""
+    batched = _write_drive(tmp_path / "batched.mcap", imu_per_message=4)
+    one, four = (evaluate(p, BUS, load_filter_config(None), fix_latency_ms=30) for p in (drive, batched))
+    assert four["imu_samples"] == one["imu_samples"] == 800
+    assert {**four, "recording": None} == {**one, "recording": None}
+    assert evaluate(batched, BUS, load_filter_config(None))["imu_samples"] == 800  # as the recorder received them
 
 
 @pytest.mark.unit

@@ -255,8 +255,8 @@ def test_acl_binds_each_identity_to_its_own_keys(pki):
                                                         "toptag/v1/fused/bus-17", "toptag/v1/diag/*/*/bus-17"}
     assert allowed("bus:bus-17", "liveliness_token", "ingress") == {"toptag/v1/alive/*/bus-17"}
     assert allowed("monitor:monitor", "put", "ingress") == set()
-    assert allowed("sim:sim", "put", "ingress") == {"toptag/v1/frame/**", "toptag/v1/imu/**", "toptag/v1/truth/**",
-                                                    "toptag/v1/gnss/**"}
+    assert allowed("sim:sim", "put", "ingress") == {"toptag/v1/frame/**", "toptag/v1/imu/**", "toptag/v1/imu_batch/**",
+                                                    "toptag/v1/truth/**", "toptag/v1/gnss/**"}
     assert "router:router" not in {s["id"] for s in acl["subjects"]}  # the router's cert grants nothing
     with pytest.raises(security.SecurityError, match="tls/"):
         security.router_config(pki["dir"], listen=["tcp/0.0.0.0:7447"])

@@ -63,6 +63,13 @@ def _short_scenario(**over) -> dict:
 # ---- scenario files -----------------------------------------------------------------------------
 
 @pytest.mark.unit
+def test_a_scenario_batches_no_more_imu_samples_than_a_message_holds():
+    from protocol.messages import IMU_BATCH_MAX
+    from sim.scenario import IMU_PER_MESSAGE_MAX
+    assert IMU_PER_MESSAGE_MAX == IMU_BATCH_MAX
+
+
+@pytest.mark.unit
 def test_bundled_scenario_loads_with_package_paths(bundled):
     sc = bundled.scenario
     assert bundled_scenario_path().is_file()
@@ -112,6 +119,7 @@ def test_every_bundled_leg_is_seen_by_several_rsus(bundled):
      "stop too close to the start"),
     (lambda d: d.update(image_model={"noise_sigma": -1}), "image_model.noise_sigma"),
     (lambda d: d.update(rsus=[]), "rsus: List should have at least 1 item"),
+    (lambda d: d.update(imu_per_message=101), "imu_per_message: Input should be less than or equal to 100"),
 ])
 @pytest.mark.unit
 def test_bad_scenarios_give_one_line_naming_the_field(tmp_path, change, expected):
@@ -283,7 +291,7 @@ class Inbox:
 
 @pytest.mark.integration
 def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launch, free_port, zenoh_session):
-    from protocol import Frame, GnssFix, GroundTruth, Imu, keys
+    from protocol import Frame, GnssFix, GroundTruth, Imu, ImuBatch, keys
     from protocol.transport import subscribe_messages
 
     # rsu-nw's pole looks down the eastbound lane the buses come in on
@@ -295,6 +303,7 @@ def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launc
     boxes = {}
     subs = []
     for kind, key_fn, typ, ids in (("frame", keys.frame, Frame, world.rsu_ids), ("imu", keys.imu, Imu, world.bus_ids),
+                                   ("imu_batch", keys.imu_batch, ImuBatch, world.bus_ids),
                                    ("truth", keys.ground_truth, GroundTruth, world.bus_ids),
                                    ("gnss", keys.gnss, GnssFix, world.bus_ids)):
         for i in ids:
@@ -347,9 +356,15 @@ def test_sim_run_publishes_frames_imu_truth_and_gnss_on_schedule(tmp_path, launc
     assert np.abs(img - bg)[:80, :80].mean() < 0.8 * world.model.noise_sigma + 1.5
 
     # IMU: every 10 ms sample from the bus's leg start on, none missing (seq +1 per sample); bus-42
-    # only from its leg start; no sample published before its time
+    # only from its leg start; four to a message (the scenario's default), each batch sent at its newest
+    # sample's time, not before
     for bus, start in (("bus-17", 0), ("bus-42", 3)):
-        items = boxes["imu", bus].items
+        batches = boxes["imu_batch", bus].items
+        assert not boxes["imu", bus].items and all(1 <= len(m.samples) <= 4 for _, m in batches)
+        assert sum(len(m.samples) == 4 for _, m in batches) >= 0.8 * len(batches)
+        assert np.all(np.diff([m.seq for _, m in batches]) == 1)
+        assert all(a >= m.samples[-1].t_ns for a, m in batches)
+        items = [(a, s) for a, m in batches for s in m.samples]
         t = np.array([m.t_ns for _, m in items])
         seq = np.array([m.seq for _, m in items])
         assert t0 + start * NS_PER_S <= t.min() <= t0 + start * NS_PER_S + 10_000_000
@@ -477,20 +492,26 @@ def _slow_world(path: str) -> World:
 def test_slow_rendering_skips_ticks_and_never_drifts(tmp_path, zenoh_session, free_port):
     """run() in-process on a real session, its render process rendering in 250 ms at 10 fps: late ticks
     are skipped and counted; the frames that go out keep their scheduled capture times."""
-    from protocol import Frame, keys
+    from protocol import Frame, Imu, ImuBatch, keys
     from protocol.transport import subscribe_messages
     from sim.live import run
 
-    path = _write(tmp_path, _short_scenario(rsus=[str(DEMO / "rsu-sw.json")]))
+    path = _write(tmp_path, _short_scenario(rsus=[str(DEMO / "rsu-sw.json")], imu_per_message=1))
     world = World(load_scenario(path))
     ep = f"tcp/127.0.0.1:{free_port()}"
     pub_side = zenoh_session("peer", listen=[ep])
     sub_side = zenoh_session("peer", connect=[ep])
-    inbox = Inbox()
-    sub = subscribe_messages(sub_side, keys.frame("rsu-sw"), Frame, inbox)
+    inbox, imu, batches = Inbox(), Inbox(), Inbox()
+    subs = [subscribe_messages(sub_side, keys.frame("rsu-sw"), Frame, inbox),
+            subscribe_messages(sub_side, keys.imu("bus-17"), Imu, imu),
+            subscribe_messages(sub_side, keys.imu_batch("bus-17"), ImuBatch, batches)]
     stats = run(world, pub_side, threading.Event(), duration_s=2.0,
                 make_world=functools.partial(_slow_world, str(path)))
-    sub.close()
+    for sub in subs:
+        sub.close()
+    # imu_per_message 1: each IMU sample an Imu of its own, sent at its time
+    assert len(imu.items) > 100 and not batches.items
+    assert np.all(np.diff([m.seq for _, m in imu.items]) == 1) and all(a >= m.t_ns for a, m in imu.items)
     published, skipped = stats.published["rsu-sw"], stats.skipped["rsu-sw"]
     # a render takes 2.5 frame periods: at least one tick is skipped for each frame rendered
     assert published >= 1 and skipped >= published

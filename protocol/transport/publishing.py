@@ -19,7 +19,7 @@ from typing import Generic, NamedTuple, TypeVar
 import zenoh
 
 from protocol import codec, keys
-from protocol.messages import Approach, Frame, FusedPose, Imu, Leave, Message, PoseFix
+from protocol.messages import Approach, Frame, FusedPose, Imu, ImuBatch, Leave, Message, PoseFix
 from toptag.waiting import wait_until
 
 M = TypeVar("M", bound=Message)
@@ -42,6 +42,7 @@ QOS: dict[type, Qos] = {
     PoseFix: Qos(zenoh.CongestionControl.DROP, zenoh.Priority.INTERACTIVE_HIGH, express=True),
     FusedPose: Qos(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH),
     Imu: Qos(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH),
+    ImuBatch: Qos(zenoh.CongestionControl.DROP, zenoh.Priority.DATA_HIGH),
     Approach: Qos(zenoh.CongestionControl.DROP, zenoh.Priority.INTERACTIVE_LOW),
     Leave: Qos(zenoh.CongestionControl.DROP, zenoh.Priority.INTERACTIVE_LOW),
 }

@@ -46,6 +46,7 @@ from protocol.messages import (
     FusedPose,
     GnssFix,
     Imu,
+    ImuBatch,
     Leave,
     PoseFix,
     RsuDiagnosis,
@@ -87,9 +88,11 @@ ANNOUNCED_SIGMA_PER_M = 0.005
 DIAGNOSIS_PERIOD_S = 1.0
 DIAGNOSIS_KEEP_S = 30.0  # an RSU not heard from for this long is no longer assessed on the wire
 # What the channels hold between two steps (the oldest dropped beyond, rather than stall Zenoh's thread):
-# 10 s of IMU at 100 Hz, and of fixes from 4 RSUs at 10 Hz and more; a step that late meets an IMU gap anyway.
+# 10 s of IMU at 100 Hz (one or four samples to a message), and of fixes from 4 RSUs at 10 Hz and more; a step
+# that late meets an IMU gap anyway.
 # A step that finds one full counts it (counters "full", "dropped" by the IMU's seq) and logs it.
 IMU_QUEUE = 1024
+IMU_BATCH_QUEUE = 256  # batches of 4 and more
 FIX_QUEUE = 512
 GNSS_QUEUE = 16
 STOP_POLL_S = 0.1  # the step loop sleeps at most this long at a time, so that stop() is seen
@@ -149,17 +152,21 @@ class BusAgent:
         self._last_diagnosis = 0.0
         self._flagged: set[str] = set()
         self._fused_pub = MessagePublisher(session, keys.fused_pose(self.bus_id), FusedPose)
+        # Its IMU samples one to a message (Imu) or several (ImuBatch, as the simulator sends them).
         self._imu_sub = subscribe_messages(session, keys.imu(self.bus_id), Imu, None, self.counters, log,
                                            capacity=IMU_QUEUE, drop_oldest=True)
+        self._imu_batch_sub = subscribe_messages(session, keys.imu_batch(self.bus_id), ImuBatch, None, self.counters,
+                                                 log, capacity=IMU_BATCH_QUEUE, drop_oldest=True)
         self._gnss_sub = subscribe_messages(session, keys.gnss(self.bus_id), GnssFix, None, self.counters, log,
                                             capacity=GNSS_QUEUE, drop_oldest=True)
-        self._subs = [self._imu_sub, self._gnss_sub]
+        self._subs = [self._imu_sub, self._imu_batch_sub, self._gnss_sub]
 
     # ---- inputs (taken in by the step) -------------------------------------------------------------
     def take_inputs(self) -> None:
         """Everything received since the last call, fed to the filter: IMU, GNSS, then the fixes old enough
         (self.fix_hold); the others wait for a later call."""
         self._imu_sub.deliver(self._on_imu)
+        self._imu_batch_sub.deliver(self._on_imu_batch)
         self._gnss_sub.deliver(self._on_gnss)
         now = time.time_ns()
         if self._fix_sub is not None:
@@ -181,6 +188,10 @@ class BusAgent:
             self._last_imu_ns = m.t_ns
             self._wheel_speed = m.wheel_speed
             self.filter.add_imu(m.t_ns, m.gyro_z, m.accel_x, m.accel_y, m.wheel_speed)
+
+    def _on_imu_batch(self, m: ImuBatch) -> None:
+        for sample in m.samples:
+            self._on_imu(sample)
 
     def _on_gnss(self, m: GnssFix) -> None:
         with self._lock:

@@ -47,6 +47,7 @@ _OWN = {
     "diag_by": keys.rsu_diagnosis(A, A, _ID),
     "diag_of": keys.rsu_diagnosis(A, _ID, A),
     "imu": keys.imu(_ID),
+    "imu_batch": keys.imu_batch(_ID),
     "gnss": keys.gnss(_ID),
 }
 _ALL_KINDS = tuple(keys.LAYOUT)
@@ -80,14 +81,14 @@ ROLE_GRANTS: dict[str, tuple[Grant, ...]] = {
         _g("learn the subscribers of what it publishes", "declare_subscriber", "egress",
            _prefix("approach"), _prefix("leave"), _prefix("fused_pose"), _prefix("rsu_diagnosis")),
         _g("receive its own PoseFix, IMU and GNSS", "declare_subscriber", "ingress",
-           _OWN["fix_for"], _OWN["imu"], _OWN["gnss"]),
-        _g("", "put", "egress", _OWN["fix_for"], _OWN["imu"], _OWN["gnss"]),
+           _OWN["fix_for"], _OWN["imu"], _OWN["imu_batch"], _OWN["gnss"]),
+        _g("", "put", "egress", _OWN["fix_for"], _OWN["imu"], _OWN["imu_batch"], _OWN["gnss"]),
     ),
     "sim": (
         _g("publish frames, IMU, ground truth, GNSS", "put", "ingress",
-           _prefix("frame"), _prefix("imu"), _prefix("ground_truth"), _prefix("gnss")),
+           _prefix("frame"), _prefix("imu"), _prefix("imu_batch"), _prefix("ground_truth"), _prefix("gnss")),
         _g("learn their subscribers", "declare_subscriber", "egress",
-           _prefix("frame"), _prefix("imu"), _prefix("ground_truth"), _prefix("gnss")),
+           _prefix("frame"), _prefix("imu"), _prefix("imu_batch"), _prefix("ground_truth"), _prefix("gnss")),
     ),
     "monitor": (
         _g("read everything, per kind of message (read-only)", "declare_subscriber", "ingress",
