@@ -12,7 +12,7 @@ from protocol.messages import Approach, CoarsePosition, GnssFix
 from services.bus.agent import announced_position
 from services.rsu.bench import simulated_pass
 from toptag.fusion.filter import BusFilter
-from toptag.rsu.pipeline import RsuPipeline
+from toptag.rsu.pipeline import PipelineSettings, RsuPipeline
 from toptag.rsu.whereabouts import GNSS_SIGMA_FLOOR_M, MAX_ACCEL_MPS2, ReportedPosition
 
 S = 1_000_000_000
@@ -104,8 +104,9 @@ def test_a_bus_that_cannot_reach_the_view_is_not_searched_one_that_can_is(bus_pa
                          velocity=_velocity(frames, j), velocity_sigma=0.3)
     res = near.process(Decoder(img), t_ns)
     assert res.acquired and res.vehicles[bus.id].fix is not None
-    # Far, but uncertain (a lost filter's 12 m): it may be in view, so it is searched.
-    vague = RsuPipeline(camera)
+    # Far, but uncertain (a lost filter's 12 m): it may be in view, so it is searched (this camera alone: at
+    # once, not held back for a likelier RSU's fix, PipelineSettings.acquire_defer_frames).
+    vague = RsuPipeline(camera, PipelineSettings(acquire_defer_frames=0))
     vague.add_vehicle(bus)
     vague.coarse_position(bus.id, t_ns, truth[0] + 25.0, truth[1] + 25.0, 12.0, velocity=(0.0, 0.0),
                           velocity_sigma=0.5)
@@ -194,7 +195,7 @@ def test_a_gnss_report_is_trusted_no_better_than_the_floor(bus_pass):
         c = CoarsePosition(t_ns=t_ns, x=float(off[0]), y=float(off[1]), sigma_m=0.3, source=source)
         r = reported_position(c)
         assert r.sigma_m == (GNSS_SIGMA_FLOOR_M if source == "gnss" else 0.3)
-        p = RsuPipeline(camera)
+        p = RsuPipeline(camera, PipelineSettings(acquire_defer_frames=0))  # searched at once where it may be
         p.add_vehicle(bus)
         p.report_position(bus.id, r)
         found[source] = p.process(Decoder(img), t_ns).vehicles[bus.id].fix is not None

@@ -590,8 +590,8 @@ def test_a_bus_whose_tags_would_be_too_small_to_decode_is_not_searched_for(bus_p
     iy, ix = np.argwhere(small & ~near_shown)[0]
     x, y = every.x0 + CELL_M * ix, every.y0 + CELL_M * iy
     modes = {}
-    for min_px in (limit, 0.0):
-        p = RsuPipeline(camera, PipelineSettings(acquire_min_tag_px=min_px))
+    for min_px in (limit, 0.0):  # searched at once, not held back as unlikely to be found (acquire_defer_frames)
+        p = RsuPipeline(camera, PipelineSettings(acquire_min_tag_px=min_px, acquire_defer_frames=0))
         p.add_vehicle(bus)
         p.coarse_position(bus.id, t_ns, x, y, 0.1)
         decoded = []  # the frame as a function that notes each decoding
@@ -758,3 +758,53 @@ def test_a_search_ends_once_each_bus_sought_has_enough_tags_and_acquires_it_as_t
     assert got[2, True][3] >= 2
     for key in ((2, True), (2, False), (0, False)):
         assert got[key][2] == pytest.approx(got[0, True][2], abs=1e-9)
+
+
+def test_a_search_unlikely_to_find_the_bus_is_held_back_a_few_frames_at_most(bus_pass):
+    """acquire_defer_below_share: a bus reported where this camera could only glimpse it (its footprint in the
+    image, its centre not) is not searched for at once, the frame not even decoded: another RSU, which sees
+    it, is likely to fix it, and that fix comes as a hint to crop from. Held back acquire_defer_frames frames
+    at most, then searched for (a bus in no camera's likely view is still found); with a hint it is cropped;
+    reported well in view, it is searched for and found at once."""
+    camera, bus, frames = bus_pass
+    settings = PipelineSettings()
+    n = settings.acquire_defer_frames
+    assert n >= 1 and settings.acquire_defer_below_share > 0
+    grid = RsuPipeline(camera, settings)._view_grid(bus)
+    sigma = 2.0
+    glimpse = [(grid.x0 + CELL_M * ix, grid.y0 + CELL_M * iy)
+               for iy, ix in np.argwhere((grid.in_view & ~grid.likely).reshape(grid.ny, grid.nx))]
+    x, y = next((x, y) for x, y in glimpse if grid.likely_share(x, y, sigma) < 0.05)
+    shown = [i for i, f in enumerate(frames) if f[3]]
+    i = shown[len(shown) // 2]
+    assert i > n
+
+    def modes(defer_frames: int, hint_after: int | None = None) -> list:
+        p = RsuPipeline(camera, settings.model_copy(update={"acquire_defer_frames": defer_frames}))
+        p.add_vehicle(bus)
+        out = []
+        for k, (t_ns, img, truth, _) in enumerate(frames[i - n - 1:i + 1]):
+            p.coarse_position(bus.id, t_ns, x, y, sigma)  # the bus's Approach, repeated
+            if k == hint_after:  # a peer's fix of the frame before
+                t_seen, _, seen, _ = frames[i - n - 2 + k]
+                p.hint(bus.id, t_seen, *seen[:4], "rsu-peer")
+            decoded = []
+            res = p.process(lambda: decoded.append(1) or img, t_ns, k)
+            out.append((res.vehicles[bus.id].mode, res.acquired, len(decoded)))
+        return out
+
+    held = modes(n)
+    assert held[:n] == [("waiting", False, 0)] * n  # no search, no decode
+    assert held[n][1] and held[n][2] == 1  # the cap: searched on the next frame it is due
+    assert modes(0)[0][1]  # without the rule: a search at once
+    hinted = modes(n, hint_after=1)
+    assert hinted[0] == ("waiting", False, 0) and hinted[1][:2] == ("hinted", False)
+    assert [m for m, _, _ in hinted[2:]] == ["tracked"] * n  # cropped from the hint's fix on
+
+    t_ns, img, truth, _ = frames[i]
+    assert grid.likely_share(truth[0], truth[1], sigma) > 0.5
+    p = RsuPipeline(camera, settings)
+    p.add_vehicle(bus)
+    p.coarse_position(bus.id, t_ns, truth[0] + 1.0, truth[1] - 1.0, sigma)
+    res = p.process(img, t_ns)
+    assert res.acquired and res.vehicles[bus.id].mode == "acquired" and res.vehicles[bus.id].fix is not None

@@ -143,6 +143,19 @@ class PipelineSettings(BaseModel):
     # find the rest on the next frame. In the demo the bus entering a view was found whole in a search's
     # first job, 40-55 % of its cost (`toptag bench rsu --scenario`, docs/real-time.md). 0: every job runs.
     acquire_enough_tags: int = Field(default=2, ge=0)
+    # An RSU that sees little of where an unfound bus probably is holds its search for that bus back, for at
+    # most acquire_defer_frames frames in a row on which it is due, unless that grows: a bus's Approach
+    # reaches every RSU of the intersection at once and each would search the same frame, on the same cores in
+    # the demo, while usually one sees the bus; its fix comes as a hint within a frame or two, by which the
+    # others crop cheaply instead (or know the bus is out of their view). "Probably" is the bus's reported
+    # position as a Gaussian (sigma a third of ReportedPosition.disc_at's radius); "sees" is its share over
+    # the cells where the bus is likely found (ViewGrid.likely: its centre in the image, its tags decodable).
+    # In the demo the RSU that found a bus had 0.96-1.0 of it, the three that searched in vain 0.00-0.03 (a
+    # probe of the sixteen searches of a `toptag bench demo --duration 60`); held back, they crop from the
+    # finder's fix a frame or two later, and the demo runs four searches instead of sixteen: the buses' first
+    # fixes p99 54-83 ms against 71-130 (docs/real-time.md). 0 frames: never held back.
+    acquire_defer_below_share: float = Field(default=0.5, ge=0.0, le=1.0)
+    acquire_defer_frames: int = Field(default=3, ge=0)
 
     @field_validator("method")
     @classmethod
@@ -308,6 +321,7 @@ class RsuPipeline:
         self._grids: dict[tuple, ViewGrid] = {}  # by kind of vehicle (_view_grid)
         self._whereabouts: dict[str, Whereabouts] = {}
         self._search: _Search | None = None  # a deferred search under way
+        self._held: dict[str, int] = {}  # bus -> due searches held back in a row (_search_held_back)
 
     # ---- code bags ----------------------------------------------------------------------------
     def add_vehicle(self, vehicle: Vehicle) -> None:
@@ -327,6 +341,7 @@ class RsuPipeline:
         self._coarse.pop(vehicle_id, None)
         self._report_misses.pop(vehicle_id, None)
         self._whereabouts.pop(vehicle_id, None)
+        self._held.pop(vehicle_id, None)
         if self._search is not None and not any(v in self.vehicles for v in self._search.vehicle_ids):
             self._search = None
 
@@ -497,18 +512,22 @@ class RsuPipeline:
 
         # The others: searched for where they can be, if a search is due.
         due = bool(unfound) and self._search is None and self._acquisition_due(t_ns, bool(tracked))
+        sought = [v for v in unfound if not self._search_held_back(v, t_ns)] if due else unfound
+        for v in unfound if due else ():
+            self._held[v] = 0 if v in sought else self._held.get(v, 0) + 1
+        due = due and bool(sought)
         search = None
         if due:
             self._last_acquire_ns = t_ns
-            tiles = np.logical_or.reduce([where[v].tile_mask() for v in unfound]) if where else None
-            jobs = self._acquisition_jobs([self.vehicles[v] for v in unfound], tiles)
+            tiles = np.logical_or.reduce([where[v].tile_mask() for v in sought]) if where else None
+            jobs = self._acquisition_jobs([self.vehicles[v] for v in sought], tiles)
             jobs = self._contrast_floor(image(), jobs, self.settings.acquire_min_contrast) if jobs else []
             tags_of = {v: frozenset((self.vehicles[v].family, tid) for tid in self.vehicles[v].tag_ids)
-                       for v in unfound}
+                       for v in sought}
             wanted = frozenset().union(*tags_of.values())
             n = self.settings.acquire_enough_tags
             enough = tuple((tags, min(n, len(tags))) for tags in tags_of.values()) if n else ()
-            search = _Search(t_ns, seq, image() if jobs else None, list(unfound), tiles,
+            search = _Search(t_ns, seq, image() if jobs else None, list(sought), tiles,
                              sorted(jobs, key=lambda j: -j.cost), pool, wanted, enough)
             result.pixels_searched += search.pixels
             result.search_cost_px = search.cost_px
@@ -521,10 +540,10 @@ class RsuPipeline:
         t3 = time.perf_counter()
         result.detect_ms += (t3 - t2) * 1e3
         for vid in away + unfound:
-            mode = "out_of_view" if vid in away else ("acquired" if result.acquired else "waiting")
+            mode = "out_of_view" if vid in away else ("acquired" if result.acquired and vid in sought else "waiting")
             obs = observed.get(vid, [])  # an "away" bus's tags may still show in another's crop
             vr = self._conclude(vid, obs, mode, t_ns, seq, 0)
-            if result.acquired and search.tiles is not None and vid in unfound and not obs:
+            if result.acquired and search.tiles is not None and vid in sought and not obs:
                 where[vid].searched(search.tiles)
             done(vr)
         result.solve_ms += (time.perf_counter() - t3) * 1e3
@@ -638,6 +657,7 @@ class RsuPipeline:
                 self._seed_velocity(vid, track)
             self._whereabouts.pop(vid, None)
             self._report_misses.pop(vid, None)
+            self._held.pop(vid, None)
         elif mode == "tracked":
             self._lost_track(vid)
         if sol is None and mode not in ("waiting", "out_of_view"):
@@ -674,6 +694,18 @@ class RsuPipeline:
             return True
         period = s.acquire_period_s if others_tracked else s.acquire_idle_period_s
         return not s_from_ns(abs(t_ns - self._last_acquire_ns)) < period  # a clock jump back: due
+
+    def _search_held_back(self, vid: str, t_ns: int) -> bool:
+        """Is the unfound bus's due search held back on this frame (PipelineSettings.acquire_defer_below_share):
+        its fresh reported position lies mostly where this camera is unlikely to find it, and fewer than
+        acquire_defer_frames of its due searches were held back in a row?"""
+        s, c = self.settings, self._coarse.get(vid)
+        if (not s.acquire_defer_frames or c is None or not self._bounded()
+                or self._held.get(vid, 0) >= s.acquire_defer_frames
+                or s_from_ns(abs(t_ns - c.t_ns)) > s.coarse_max_age_s):
+            return False
+        x, y, radius = c.disc_at(t_ns, BUS_MAX_SPEED_MPS * SPEED_MARGIN)
+        return self._view_grid(self.vehicles[vid]).likely_share(x, y, radius / 3) < s.acquire_defer_below_share
 
     def _acquisition_jobs(self, vehicles: list[Vehicle], tiles: np.ndarray | None = None) -> list[DetectJob]:
         """The search for these vehicles: the pyramid's bands, only over the marked image tiles (and

@@ -110,6 +110,11 @@ class ViewGrid:
     # for a decodable size, some tag of it there can project at least that large)
     in_view: np.ndarray
     tiles: np.ndarray  # (ny*nx, 4) int: tile columns [tx0, tx1) and rows [ty0, ty1) of that footprint
+    # (ny*nx,) bool: where a vehicle is likely found, not only possibly: in view, its centre's image in the
+    # frame and (built for a decodable size) some tag of it centred there at least that large at its best
+    # yaw. in_view takes each cell's best case (any part of the footprint in the image, the tag anywhere in
+    # the footprint's reach), so a bus beside the view or behind the camera is "in view" too. None: in_view.
+    likely: np.ndarray | None = None
 
     @classmethod
     def build(cls, camera: Camera, roof_z: float, radius_m: float, dz: float = 0.3, pad_px: float = 4.0,
@@ -160,13 +165,32 @@ class ViewGrid:
         in_view = partial | inside.reshape(len(centres), -1).any(axis=1)
         if min_tag_px > 0 and tags_m:
             in_view &= _best_tag_px(camera, centres, roof_z + dz, r, cell_m, (ny, nx), tags_m) >= min_tag_px
+        likely = in_view.copy()
+        centre = np.column_stack([centres, np.full(len(centres), roof_z)])
+        ahead = camera.to_camera(centre)[:, 2] > 0.1
+        shown = np.zeros(len(centres), bool)
+        shown[ahead] = camera.in_image(camera.project(centre[ahead]))
+        likely &= shown
+        if min_tag_px > 0 and tags_m:
+            smin, smax = plane_scale_px(camera, centre)
+            likely &= np.max([tag_minor_px(side, up, smin, smax) for side, up in tags_m], axis=0) >= min_tag_px
         tile_w, tile_h = w / TILES[0], h / TILES[1]
         tiles = np.zeros((len(centres), 4), int)
         tiles[in_view, 0] = np.clip(np.floor(u0[in_view] / tile_w), 0, TILES[0] - 1)
         tiles[in_view, 1] = np.clip(np.ceil(u1[in_view] / tile_w), 1, TILES[0])
         tiles[in_view, 2] = np.clip(np.floor(v0[in_view] / tile_h), 0, TILES[1] - 1)
         tiles[in_view, 3] = np.clip(np.ceil(v1[in_view] / tile_h), 1, TILES[1])
-        return cls(float(lo[0]), float(lo[1]), int(nx), int(ny), in_view, tiles)
+        return cls(float(lo[0]), float(lo[1]), int(nx), int(ny), in_view, tiles, likely)
+
+    def likely_share(self, x: float, y: float, sigma_m: float) -> float:
+        """How much of a position known to sigma_m (a Gaussian about (x, y)) lies where the vehicle is
+        likely found (likely): ~1 well inside the view, ~0 beside it, behind the camera or far off."""
+        likely = self.in_view if self.likely is None else self.likely
+        sigma = max(sigma_m, 0.25 * CELL_M)
+        gx = self.x0 + CELL_M * np.arange(self.nx) - x
+        gy = self.y0 + CELL_M * np.arange(self.ny) - y
+        density = np.exp(-(gy[:, None] ** 2 + gx[None, :] ** 2) / (2 * sigma * sigma)).ravel()
+        return min(1.0, float(density[likely].sum() * CELL_M * CELL_M / (2 * np.pi * sigma * sigma)))
 
     def disc(self, x: float, y: float, radius: float) -> np.ndarray:
         """(ny, nx) bool: the cells whose centre may lie within radius of (x, y)."""
