@@ -201,14 +201,6 @@ BAD_IMU = [
 ]
 
 
-@pytest.mark.parametrize("payload,reason,text", BAD_IMU, ids=[b[2] for b in BAD_IMU])
-def test_bad_binary_imu_payloads_are_rejected_with_one_clear_line(payload, reason, text):
-    with pytest.raises(ProtocolError) as ei:
-        decode(payload, Imu)
-    assert ei.value.reason == reason and text in str(ei.value)
-    assert str(ei.value).startswith("Imu: ") and "\n" not in str(ei.value)
-
-
 BATCH = ImuBatch(bus_id="bus-42", seq=5, samples=[IMU, IMU.model_copy(update={"t_ns": 9, "seq": None,
                                                                                "wheel_speed": None})])
 # The wire bytes of BATCH, written out (protocol/codec.py's layout): magic, version, flags (seq present), seq,
@@ -256,12 +248,16 @@ BAD_BATCH = [
 ]
 
 
-@pytest.mark.parametrize("payload,reason,text", BAD_BATCH, ids=[b[2] for b in BAD_BATCH])
-def test_bad_binary_imu_batches_are_rejected_with_one_clear_line(payload, reason, text):
+BAD_BINARY_IMU = [(Imu, *b) for b in BAD_IMU] + [(ImuBatch, *b) for b in BAD_BATCH]
+
+
+@pytest.mark.parametrize("msg_type,payload,reason,text", BAD_BINARY_IMU,
+                         ids=[f"{b[0].__name__}: {b[3]}" for b in BAD_BINARY_IMU])
+def test_bad_binary_imu_payloads_are_rejected_with_one_clear_line(msg_type, payload, reason, text):
     with pytest.raises(ProtocolError) as ei:
-        decode(payload, ImuBatch)
+        decode(payload, msg_type)
     assert ei.value.reason == reason and text in str(ei.value)
-    assert str(ei.value).startswith("ImuBatch: ") and "\n" not in str(ei.value)
+    assert str(ei.value).startswith(f"{msg_type.__name__}: ") and "\n" not in str(ei.value)
 
 
 def test_decode_accepts_zenoh_bytes_and_memoryview():
