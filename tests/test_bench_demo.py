@@ -26,7 +26,9 @@ def test_bench_demo_prints_and_writes_every_figure(tmp_path):
     # Every process of the demo, measured over the same window.
     assert {"router", "sim", "rsu-sw", "rsu-ne", "bus-bus-42", "demo+monitor"} <= set(cpu["seconds"]), cpu
     assert all(v is not None and v >= 0 for v in cpu["seconds"].values()), cpu
-    assert 0 < cpu["window_s"] <= 12.5 and cpu["cores"] is not None
+    # The window is the run's 12 s and its stop, which takes longer on a busy machine (12.7 s with both cores
+    # busy, fresh-clone CI of 8819c80): about the duration, not the start-up.
+    assert 0 < cpu["window_s"] <= 15 and cpu["cores"] is not None
     assert cpu["total_s"] == pytest.approx(sum(cpu["seconds"].values()), abs=0.05)
     assert cpu["cores"] == pytest.approx(cpu["total_s"] / cpu["window_s"], rel=0.05)
     assert set(f["rsus"]) <= {"rsu-sw", "rsu-ne"}  # heartbeats of the scenario's RSUs only
