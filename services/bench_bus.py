@@ -299,7 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default 4; 1: each sample an Imu on its own key, as an agent before ImuBatch takes them; "
                         f"at most {IMU_BATCH_MAX})")
     p.add_argument("--agent-source", default=None, metavar="DIR",
-                   help="run the agent from this checkout of toptag (e.g. an older worktree) to compare versions")
+                   help="run the agent from this checkout of toptag (e.g. an older worktree) to compare versions; an "
+                        "agent older than ImuBatch (main 65ec073) reads only Imu: add --imu-per-message 1")
     p.add_argument("--also", action="append", default=None, metavar="DIR",
                    help="also run the agent of this checkout beside it on the same drive (repeatable): CPU of "
                         "each under the same load")
