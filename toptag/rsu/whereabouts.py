@@ -113,8 +113,8 @@ class ViewGrid:
     # (ny*nx,) bool: where a vehicle is likely found, not only possibly: in view, its centre's image in the
     # frame and (built for a decodable size) some tag of it centred there at least that large at its best
     # yaw. in_view takes each cell's best case (any part of the footprint in the image, the tag anywhere in
-    # the footprint's reach), so a bus beside the view or behind the camera is "in view" too. None: in_view.
-    likely: np.ndarray | None = None
+    # the footprint's reach), so a bus beside the view or behind the camera is "in view" too.
+    likely: np.ndarray
 
     @classmethod
     def build(cls, camera: Camera, roof_z: float, radius_m: float, dz: float = 0.3, pad_px: float = 4.0,
@@ -185,12 +185,11 @@ class ViewGrid:
     def likely_share(self, x: float, y: float, sigma_m: float) -> float:
         """How much of a position known to sigma_m (a Gaussian about (x, y)) lies where the vehicle is
         likely found (likely): ~1 well inside the view, ~0 beside it, behind the camera or far off."""
-        likely = self.in_view if self.likely is None else self.likely
         sigma = max(sigma_m, 0.25 * CELL_M)
         gx = self.x0 + CELL_M * np.arange(self.nx) - x
         gy = self.y0 + CELL_M * np.arange(self.ny) - y
         density = np.exp(-(gy[:, None] ** 2 + gx[None, :] ** 2) / (2 * sigma * sigma)).ravel()
-        return min(1.0, float(density[likely].sum() * CELL_M * CELL_M / (2 * np.pi * sigma * sigma)))
+        return min(1.0, float(density[self.likely].sum() * CELL_M * CELL_M / (2 * np.pi * sigma * sigma)))
 
     def disc(self, x: float, y: float, radius: float) -> np.ndarray:
         """(ny, nx) bool: the cells whose centre may lie within radius of (x, y)."""
