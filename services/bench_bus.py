@@ -45,7 +45,7 @@ from protocol.messages import (
     PoseFix,
     RsuDiagnosis,
 )
-from protocol.transport import MessagePublisher, open_session, subscribe_messages
+from protocol.transport import MessagePublisher, imu_publisher, open_session, subscribe_messages
 from services.processes import TOPTAG, ProcessGroup, cpu_seconds, free_port
 from sim.motion import DEFAULT_T0_NS, ImuModel, bus_trajectory
 from sim.studies.fusion import BUS_ROOF_Z, FixErrorModel, simulate_fixes
@@ -158,8 +158,7 @@ def run(duration_s: float = 30.0, n_rsu: int = 4, fix_hz: float = 10.0, latency_
     subs = [subscribe_messages(session, keys.fused_pose(bus), FusedPose, got.on_fused),
             subscribe_messages(session, keys.rsu_diagnosis(INTERSECTION, keys.ANY, bus), RsuDiagnosis, got.on_diagnosis),
             subscribe_messages(session, keys.approach(INTERSECTION, bus), Approach, got.on_approach)]
-    imu_pub = (MessagePublisher(session, keys.imu_batch(bus), ImuBatch) if imu_per_message > 1
-               else MessagePublisher(session, keys.imu(bus), Imu))
+    imu_pub = imu_publisher(session, bus, imu_per_message)
     imu_batch: list[Imu] = []
     gnss_pub = MessagePublisher(session, keys.gnss(bus), GnssFix)
     fix_pubs: dict[str, MessagePublisher] = {}

@@ -72,7 +72,7 @@ import numpy as np
 
 from protocol import keys
 from protocol.messages import ClockInfo, Frame, GnssFix, GroundTruth, Imu, ImuBatch
-from protocol.transport import MessagePublisher
+from protocol.transport import MessagePublisher, imu_publisher
 from protocol.transport.runner import add_service_arguments, run_service, setup_logging
 from sim.scenario import bundled_scenario_path, load_scenario
 from sim.world import World
@@ -108,9 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
 class _Publishers:
     def __init__(self, session, world: World):
         self.frames = {r: MessagePublisher(session, keys.frame(r), Frame) for r in world.rsu_ids}
-        batched = world.scenario.imu_per_message > 1
-        self.imu = {b: MessagePublisher(session, *((keys.imu_batch(b), ImuBatch) if batched else (keys.imu(b), Imu)))
-                    for b in world.bus_ids}
+        self.imu = {b: imu_publisher(session, b, world.scenario.imu_per_message) for b in world.bus_ids}
         self.truth = {b: MessagePublisher(session, keys.ground_truth(b), GroundTruth) for b in world.bus_ids}
         self.gnss = {b: MessagePublisher(session, keys.gnss(b), GnssFix) for b in world.bus_ids}
 
@@ -235,11 +233,11 @@ class SensorLoop(threading.Thread):
                     self.frame_delays_ns.append(time.time_ns() - items[j][0])
                     self.frame_published(items[j][1].rsu_id)
                 j += 1
-            if j > i and kind != "imu":
-                self.counts[kind] += j - i
-            elif j > i:  # counted in samples, one or several to a message
+            if j > i and kind == "imu":  # counted in samples, one or several to a message
                 self.counts[kind] += sum(len(m.samples) if isinstance(m, ImuBatch) else 1 for _, m in items[i:j])
                 self.max_delay_ns = max(self.max_delay_ns, time.time_ns() - items[j - 1][0])
+            elif j > i:
+                self.counts[kind] += j - i
             q[3] = j
             if j < len(items):
                 wake = min(wake, items[j][0])

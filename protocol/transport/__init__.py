@@ -34,6 +34,7 @@ from protocol.transport.publishing import (
     Qos,
     declare_publisher,
     encoding_for,
+    imu_publisher,
     publish,
     qos_for,
     wait_matching,
@@ -45,7 +46,7 @@ __all__ = [
     "ACCEPTED", "DROPPED", "ONE_ZENOH_THREAD", "FULL", "HANDLER_ERROR", "IGNORED", "MATCH_SETTLE_S", "MISSING", "QOS", "REJECTED", "SKIPPED",
     "LivelinessWatcher", "LogLimiter", "MessageCounters", "MessagePublisher", "Qos", "SafeSubscriber",
     "ZenohSetupError", "add_zenoh_arguments", "config_summary", "declare_alive", "declare_publisher",
-    "encoding_for", "latest_receiver", "open_session", "publish", "qos_for", "query_sessions",
+    "encoding_for", "imu_publisher", "latest_receiver", "open_session", "publish", "qos_for", "query_sessions",
     "serve_session", "split_endpoints", "subscribe_messages", "wait_matching", "watch_buses",
     "zenoh_config", "zenoh_config_from_args",
 ]

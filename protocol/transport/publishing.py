@@ -119,6 +119,14 @@ def declare_publisher(session: zenoh.Session, key: str, msg_type: type[M], *,
     return MessagePublisher(session, key, msg_type, qos=qos)
 
 
+def imu_publisher(session: zenoh.Session, bus_id: str, per_message: int) -> MessagePublisher:
+    """A bus's IMU sender: its samples per_message to an ImuBatch on keys.imu_batch, or with 1 each an Imu on
+    keys.imu (the bus agent takes both)."""
+    if per_message > 1:
+        return MessagePublisher(session, keys.imu_batch(bus_id), ImuBatch)
+    return MessagePublisher(session, keys.imu(bus_id), Imu)
+
+
 def publish(session: zenoh.Session, key: str, msg: Message) -> None:
     """One-shot put with the QoS of the message's type (prefer a MessagePublisher for streams)."""
     key = _check_publish_key(key)
