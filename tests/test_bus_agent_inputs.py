@@ -25,12 +25,16 @@ T0 = 1_700_000_000_000_000_000
 NS = 1_000_000_000
 
 
+def _demo_agent(session, **settings) -> BusAgent:
+    """The agent of the demo's bus-42 on the demo's map, on this session."""
+    return BusAgent(session, Vehicle.load(DEMO / "bus-42.json"), MapFile.load(DEMO / "map.json"), **settings)
+
+
 def test_the_agent_feeds_what_arrived_to_its_filter_at_its_step(peer_pair):
     a, b = peer_pair
-    vehicle = Vehicle.load(DEMO / "bus-42.json")
-    agent = BusAgent(b, vehicle, MapFile.load(DEMO / "map.json"))
+    agent = _demo_agent(b)
     try:
-        bus = vehicle.id
+        bus = agent.bus_id
         seen = []  # a callback subscriber of the agent's session: what has reached it
         watch = subscribe_messages(b, keys.imu(bus), Imu, seen.append)
         imu = MessagePublisher(a, keys.imu(bus), Imu)
@@ -61,10 +65,9 @@ def test_the_agent_feeds_what_arrived_to_its_filter_at_its_step(peer_pair):
 def test_the_agent_takes_imu_samples_several_to_a_message(peer_pair):
     """ImuBatch, as the simulator sends them: each batch's samples to the filter in order, as if one by one."""
     a, b = peer_pair
-    vehicle = Vehicle.load(DEMO / "bus-42.json")
-    agent = BusAgent(b, vehicle, MapFile.load(DEMO / "map.json"))
+    agent = _demo_agent(b)
     try:
-        bus = vehicle.id
+        bus = agent.bus_id
         seen = []
         watch = subscribe_messages(b, keys.imu_batch(bus), ImuBatch, seen.append)
         pub = MessagePublisher(a, keys.imu_batch(bus), ImuBatch)
@@ -87,12 +90,10 @@ def test_the_agent_takes_imu_samples_several_to_a_message(peer_pair):
 
 def test_the_agent_holds_each_fix_until_it_is_old_enough(peer_pair, samples):
     a, b = peer_pair
-    vehicle = Vehicle.load(DEMO / "bus-42.json")
-    map_file = MapFile.load(DEMO / "map.json")
     hold_s = 60  # no fix of this test comes of age while it runs: it releases them itself, at a given time
-    agent = BusAgent(b, vehicle, map_file, fix_hold_ms=1000 * hold_s)
+    agent = _demo_agent(b, fix_hold_ms=1000 * hold_s)
     try:
-        bus, inter = vehicle.id, map_file.intersections[0]
+        bus, inter = agent.bus_id, MapFile.load(DEMO / "map.json").intersections[0]
         agent._enter(inter)  # subscribes to the bus's fixes at the intersection
         template = samples["PoseFix"]
         seen = []
